@@ -1,0 +1,218 @@
+"""Typed configuration: dataclass schemas, Hydra ConfigStore registration and validation.
+
+Every YAML file under ``conf/`` extends one of the schemas below (``defaults: [base_X, _self_]``),
+so a typo in a field name or a wrong type is rejected by Hydra when the config is composed.
+Range checks that Hydra cannot express live in :func:`validate`; each failure raises
+:class:`ConfigError` with a one-line message naming the field, its value and what is allowed.
+
+This module does not import Hydra at import time: the simulator and the environment use the
+dataclasses directly, without any configuration framework.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Optional
+
+from omegaconf import MISSING, DictConfig, OmegaConf
+
+
+class ConfigError(ValueError):
+    """A configuration value outside its allowed range (message names the field)."""
+
+
+# --------------------------------------------------------------------------- schemas
+@dataclass
+class SiteConfig:
+    """The site model of SPEC §1. Defaults are the SPEC's (this project's calibration)."""
+
+    name: str = "default"
+    n_nodes: int = 15  # N_N: 0=D decision, 1=C charger, 2=B bypass, 3=M merge, 4..N_N-1 road
+    n_vehicles: int = 3  # N_V
+    p_c: float = 0.8  # probability that the closed node X is closed in a tick
+    t_c: int = 30  # T_C: charging ticks per charge
+    soc_low: float = 30.0  # SoC_low: any soc below this after a tick fails the site
+    e_move: float = 0.5  # energy lost by a vehicle that moves in a tick
+    e_idle: float = 0.02  # energy lost by a vehicle that waits (and is not charging)
+    e_charge: float = 40.0  # energy of one full charge (E_charge / T_C per charging tick)
+    closed_node: int = 9  # X, a road node
+    xi: float = 10.0  # initial soc ~ U[soc_low + xi, 100]
+
+
+@dataclass
+class StateConfig:
+    """State encoding seen by the agents (SPEC §2): ``partial`` (3 features) or ``all``."""
+
+    name: str = "partial"
+
+
+@dataclass
+class MDPConfig:
+    """The decision process of SPEC §2."""
+
+    tau_e: int = 3000  # episode tick budget (truncation)
+    p_f: float = 50.0  # cost of a failure tick
+    p_q: float = 1.0  # cost of a queue tick
+    gamma: float = 0.9  # discount
+
+
+@dataclass
+class AgentConfig:
+    name: str = MISSING
+
+
+@dataclass
+class RuleAgentConfig(AgentConfig):
+    """Benchmark: charge iff soc_D <= threshold."""
+
+    name: str = "rule"
+    threshold: float = 40.0
+
+
+@dataclass
+class HeuristicAgentConfig(AgentConfig):
+    """Queue-aware baseline: charge early when the charger is free and the vehicle at D is the
+    emptiest one (and below ``upper``); otherwise follow the rule with ``threshold``."""
+
+    name: str = "heuristic"
+    threshold: float = 40.0
+    upper: float = 60.0
+
+
+@dataclass
+class EvalConfig:
+    """Evaluation protocol of SPEC §4 (thesis: 1000 simulations x 10 000 ticks)."""
+
+    n_sims: int = 1000
+    ticks: int = 10000
+    seed: int = 0
+    out: Optional[str] = None  # result JSON path; the per-simulation CSV is written beside it
+    device: str = "cpu"
+    chunk: int = 256  # ticks of closure draws generated at once
+    progress: bool = True
+
+
+@dataclass
+class Config:
+    site: SiteConfig = field(default_factory=SiteConfig)
+    state: StateConfig = field(default_factory=StateConfig)
+    mdp: MDPConfig = field(default_factory=MDPConfig)
+    agent: Any = MISSING
+    eval: EvalConfig = field(default_factory=EvalConfig)
+    seed: int = 0
+
+
+AGENT_SCHEMAS: dict[str, type] = {
+    "rule": RuleAgentConfig,
+    "heuristic": HeuristicAgentConfig,
+}
+ENCODINGS = ("partial", "all")
+
+
+def register_configs() -> None:
+    """Register the schemas in Hydra's ConfigStore (idempotent)."""
+    from hydra.core.config_store import ConfigStore
+
+    cs = ConfigStore.instance()
+    cs.store(name="base_config", node=Config)
+    cs.store(group="site", name="base_site", node=SiteConfig)
+    cs.store(group="state", name="base_state", node=StateConfig)
+    cs.store(group="mdp", name="base_mdp", node=MDPConfig)
+    cs.store(group="eval", name="base_eval", node=EvalConfig)
+    for name, schema in AGENT_SCHEMAS.items():
+        cs.store(group="agent", name=f"base_{name}", node=schema)
+
+
+# ------------------------------------------------------------------------ validation
+def _fmt(v: Any) -> str:
+    return repr(v) if isinstance(v, str) else f"{v}"
+
+
+def check_range(path: str, value: Any, lo: float | None = None, hi: float | None = None,
+                allowed: str | None = None) -> None:
+    """Raise :class:`ConfigError` unless ``lo <= value <= hi`` (and finite)."""
+    bad = value is None or (isinstance(value, float) and not math.isfinite(value))
+    bad = bad or (lo is not None and value < lo) or (hi is not None and value > hi)
+    if bad:
+        if allowed is None:
+            lo_s = "-inf" if lo is None else _fmt(lo)
+            hi_s = "inf" if hi is None else _fmt(hi)
+            allowed = f"[{lo_s}, {hi_s}]"
+        raise ConfigError(f"{path}={_fmt(value)} is invalid: allowed {allowed}")
+
+
+def check_choice(path: str, value: Any, choices: tuple[str, ...] | list[str]) -> None:
+    if value not in choices:
+        raise ConfigError(f"{path}={_fmt(value)} is invalid: allowed one of {', '.join(choices)}")
+
+
+def validate_site(s: SiteConfig, path: str = "site") -> SiteConfig:
+    check_range(f"{path}.n_nodes", s.n_nodes, 5, 62,
+                allowed="[5, 62] (site occupancy is a 64-bit mask)")
+    check_range(f"{path}.n_vehicles", s.n_vehicles, 1, s.n_nodes - 2,
+                allowed=f"[1, n_nodes - 2 = {s.n_nodes - 2}] (vehicles start on distinct nodes "
+                        "other than C)")
+    check_range(f"{path}.p_c", s.p_c, 0.0, 1.0)
+    check_range(f"{path}.t_c", s.t_c, 1, 100_000)
+    check_range(f"{path}.soc_low", s.soc_low, 0.0, 100.0)
+    check_range(f"{path}.xi", s.xi, 0.0, 100.0 - s.soc_low,
+                allowed=f"[0, 100 - soc_low = {100.0 - s.soc_low}]")
+    check_range(f"{path}.e_move", s.e_move, 0.0, 100.0)
+    check_range(f"{path}.e_idle", s.e_idle, 0.0, 100.0)
+    check_range(f"{path}.e_charge", s.e_charge, 0.0, 100.0)
+    check_range(f"{path}.closed_node", s.closed_node, 4, s.n_nodes - 1,
+                allowed=f"a road node in [4, n_nodes - 1 = {s.n_nodes - 1}]")
+    return s
+
+
+def validate_device(path: str, device: str) -> None:
+    import torch
+
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError):
+        raise ConfigError(f"{path}={_fmt(device)} is invalid: allowed cpu, cuda, cuda:N, mps") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError(f"{path}={_fmt(device)} is invalid: CUDA is not available here; use cpu")
+    if dev.type not in ("cpu", "cuda", "mps"):
+        raise ConfigError(f"{path}={_fmt(device)} is invalid: allowed cpu, cuda, cuda:N, mps")
+
+
+def validate_agent(a: Any, path: str = "agent") -> Any:
+    name = getattr(a, "name", None)
+    check_choice(f"{path}.name", name, tuple(AGENT_SCHEMAS))
+    if name in ("rule", "heuristic"):
+        check_range(f"{path}.threshold", a.threshold, 0.0, 100.0)
+    if name == "heuristic":
+        check_range(f"{path}.upper", a.upper, 0.0, 100.0)
+    return a
+
+
+def validate(cfg: Config) -> Config:
+    """Check every range; raise :class:`ConfigError` naming the first bad field."""
+    validate_site(cfg.site)
+    check_choice("state.name", cfg.state.name, ENCODINGS)
+    check_range("mdp.tau_e", cfg.mdp.tau_e, 1, 10**9)
+    check_range("mdp.p_f", cfg.mdp.p_f, 0.0, None)
+    check_range("mdp.p_q", cfg.mdp.p_q, 0.0, None)
+    check_range("mdp.gamma", cfg.mdp.gamma, 0.0, 1.0)
+    validate_agent(cfg.agent)
+    check_range("eval.n_sims", cfg.eval.n_sims, 1, 10**8)
+    check_range("eval.ticks", cfg.eval.ticks, 1, 10**9)
+    check_range("eval.seed", cfg.eval.seed, 0, 2**32 - 1)
+    check_range("eval.chunk", cfg.eval.chunk, 1, 1_000_000)
+    validate_device("eval.device", cfg.eval.device)
+    check_range("seed", cfg.seed, 0, 2**32 - 1)
+    return cfg
+
+
+def to_config(cfg: DictConfig | Config) -> Config:
+    """Turn a composed Hydra config into validated dataclasses."""
+    if isinstance(cfg, DictConfig):
+        obj = OmegaConf.to_object(cfg)
+    else:
+        obj = cfg
+    if not isinstance(obj, Config):  # composed without the schema (e.g. plain YAML in a test)
+        raise ConfigError("config was not composed from the 'base_config' schema")
+    return validate(obj)

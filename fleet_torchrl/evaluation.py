@@ -1,0 +1,195 @@
+"""Evaluation protocol (SPEC §4): many sites, many ticks, common random numbers.
+
+:func:`simulate` runs a policy on ``n_sims`` sites for ``ticks`` ticks (or until each fails)
+straight on the simulator, without TorchRL in the loop: each tick is one :meth:`Site.tick`,
+one encoding and one policy forward over the whole batch, so there is no per-site Python
+work. Closure draws are generated ``chunk`` ticks at a time. Simulation ``i`` is site index
+``i`` under ``seed``: two policies evaluated with the same seed are paired.
+
+Results are plain dicts (JSON-ready); :func:`compare` pairs two of them.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import time
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from .config import SiteConfig
+from .encodings import get_encoding
+from .policies import Policy
+from .runinfo import atomic_write, read_json, write_json
+from .sim import Site
+
+SUMMARY_KEYS = ("trips_mean", "trips_std", "queue_mean", "queue_std", "failure_rate",
+                "ticks_survived_mean")
+Z95 = 1.959963984540054
+
+
+@torch.inference_mode()
+def simulate(policy: Policy, site_cfg: SiteConfig, n_sims: int = 1000, ticks: int = 10_000,
+             seed: int = 0, device: str | torch.device = "cpu", chunk: int = 256,
+             progress: bool = False, desc: str | None = None, site_offset: int = 0
+             ) -> dict[str, Tensor]:
+    """Per-simulation records: ``trips``, ``queue``, ``failed``, ``ticks_survived`` (CPU tensors)."""
+    device = torch.device(device)
+    site = Site(site_cfg, device)
+    encode = get_encoding(policy.encoding)
+    policy = policy.to(device).eval()
+    idx = torch.arange(n_sims, device=device, dtype=torch.int64) + site_offset
+    s, needs = site.init_state(seed, idx)
+    site.decide(s, needs, policy(encode(site, s)))
+    trips = torch.zeros(n_sims, dtype=torch.int64, device=device)
+    queue = torch.zeros_like(trips)
+    alive = torch.ones(n_sims, dtype=torch.bool, device=device)
+    survived = torch.zeros_like(trips)
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=ticks, desc=desc or f"eval {policy.name}", unit="tick",
+                   unit_scale=True, leave=False)
+    for t0 in range(0, ticks, chunk):
+        n_t = min(chunk, ticks - t0)
+        ticks_block = torch.arange(t0, t0 + n_t, device=device)
+        closed_block = site.closures(seed, idx, ticks_block[:, None])  # [T, B]
+        for t in range(n_t):
+            # A failed site keeps being simulated but stops counting: masking three
+            # counters is cheaper than freezing the whole state every tick.
+            out = site.tick(s, closed_block[t])
+            survived += alive
+            trips += out.arrived & alive
+            queue += out.queue & alive
+            alive &= ~out.failed
+            site.decide(s, out.arrived, policy(encode(site, s)))
+        if bar is not None:
+            bar.update(n_t)
+    if bar is not None:
+        bar.close()
+    return {"trips": trips.cpu(), "queue": queue.cpu(), "failed": (~alive).cpu(),
+            "ticks_survived": survived.cpu()}
+
+
+def _std(x: Tensor) -> float:
+    return float(x.double().std(unbiased=True)) if x.numel() > 1 else 0.0
+
+
+def summarize(records: dict[str, Tensor]) -> dict[str, float]:
+    trips, queue = records["trips"].double(), records["queue"].double()
+    return {
+        "trips_mean": float(trips.mean()),
+        "trips_std": _std(trips),
+        "queue_mean": float(queue.mean()),
+        "queue_std": _std(queue),
+        "failure_rate": float(records["failed"].double().mean()),
+        "ticks_survived_mean": float(records["ticks_survived"].double().mean()),
+    }
+
+
+def evaluate_policy(policy: Policy, site_cfg: SiteConfig, n_sims: int, ticks: int, seed: int,
+                    device: str = "cpu", chunk: int = 256, progress: bool = False,
+                    name: str | None = None) -> dict[str, Any]:
+    """Run the protocol and return a result dict (summary, per-simulation records, setup)."""
+    t0 = time.perf_counter()
+    rec = simulate(policy, site_cfg, n_sims, ticks, seed, device, chunk, progress,
+                   desc=f"eval {name or policy.name}")
+    wall = time.perf_counter() - t0
+    return {
+        "policy": name or policy.name,
+        "n_sims": n_sims,
+        "ticks": ticks,
+        "seed": seed,
+        **summarize(rec),
+        "site": asdict(site_cfg),
+        "wall_time_s": wall,
+        "records": {k: v.tolist() for k, v in rec.items()},
+    }
+
+
+# ------------------------------------------------------------------------- comparison
+def gain_over(result: dict[str, Any], baseline: dict[str, Any]) -> dict[str, Any]:
+    """Trips gain of ``result`` over ``baseline`` in percent of the baseline's mean.
+
+    ``gain_pct`` is the mean paired difference over the baseline's mean (equal to the
+    difference of means); ``gain_ci95`` is the half-width of its 95% confidence interval
+    from the paired differences (normal approximation). ``per_sim_gain_pct`` is each
+    simulation's trips as % over the baseline's mean (the box-plot quantity of SPEC §5).
+    Both results must come from the same seed, number of simulations and ticks.
+    """
+    for key in ("seed", "n_sims", "ticks"):
+        if result.get(key) != baseline.get(key):
+            raise ValueError(f"cannot pair {result.get('policy')} with {baseline.get('policy')}: "
+                             f"{key} differs ({result.get(key)} vs {baseline.get(key)})")
+    a = torch.tensor(result["records"]["trips"], dtype=torch.float64)
+    b = torch.tensor(baseline["records"]["trips"], dtype=torch.float64)
+    base_mean = float(b.mean())
+    diff = a - b
+    n = diff.numel()
+    half = Z95 * _std(diff) / math.sqrt(n) if n > 1 else float("nan")
+    return {
+        "policy": result["policy"],
+        "baseline": baseline["policy"],
+        "gain_pct": 100.0 * float(diff.mean()) / base_mean,
+        "gain_ci95": 100.0 * half / base_mean,
+        "per_sim_gain_pct": (100.0 * (a / base_mean - 1.0)).tolist(),
+    }
+
+
+def compare(path_a: str | Path, path_b: str | Path) -> dict[str, Any]:
+    """Pairwise comparison of two result files written by :func:`save_result`."""
+    return gain_over(load_result(path_a), load_result(path_b))
+
+
+# ------------------------------------------------------------------------- files
+CSV_FIELDS = ("sim", "trips", "queue", "failed", "ticks_survived")
+
+
+def records_csv(result: dict[str, Any]) -> str:
+    rec = result["records"]
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(CSV_FIELDS)
+    for i, row in enumerate(zip(rec["trips"], rec["queue"], rec["failed"], rec["ticks_survived"])):
+        w.writerow((i, row[0], row[1], int(row[2]), row[3]))
+    return buf.getvalue()
+
+
+def save_result(result: dict[str, Any], path: str | Path) -> tuple[Path, Path]:
+    """Write the result JSON and its per-simulation CSV (same stem, ``.csv``) atomically."""
+    path = Path(path)
+    if path.suffix != ".json":
+        raise ValueError(f"result path must end in .json, got {path}")
+    csv_path = path.with_suffix(".csv")
+    atomic_write(csv_path, lambda f: f.write(records_csv(result)))
+    write_json(path, result)
+    return path, csv_path
+
+
+def load_result(path: str | Path) -> dict[str, Any]:
+    res = read_json(path)
+    missing = [k for k in ("policy", "seed", "n_sims", "ticks", "records") if k not in res]
+    if missing:
+        raise ValueError(f"{path} is not an evaluation result (missing {', '.join(missing)})")
+    return res
+
+
+def format_table(rows: list[dict[str, Any]]) -> str:
+    """A Markdown table of summary rows (with gain columns when present)."""
+    cols = [("policy", "policy", "{}"), ("trips_mean", "trips mean", "{:.2f}"),
+            ("trips_std", "trips std", "{:.2f}"), ("queue_mean", "queue mean", "{:.2f}"),
+            ("queue_std", "queue std", "{:.2f}"), ("failure_rate", "failure rate", "{:.3f}")]
+    if any("gain_pct" in r for r in rows):
+        cols += [("gain_pct", "gain % vs rule", "{:+.2f}"), ("gain_ci95", "± 95% CI", "{:.2f}")]
+    lines = ["| " + " | ".join(c[1] for c in cols) + " |",
+             "|" + "|".join("---" if i == 0 else "---:" for i in range(len(cols))) + "|"]
+    for r in rows:
+        cells = [fmt.format(r[k]) if r.get(k) is not None else "" for k, _, fmt in cols]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)

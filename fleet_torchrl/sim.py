@@ -1,0 +1,219 @@
+"""The charging site, tick by tick (SPEC §1), for a batch of independent sites. Pure torch.
+
+Layout
+------
+Nodes ``0..N-1``: ``0 = D`` (decision), ``1 = C`` (charger), ``2 = B`` (bypass), ``3 = M``
+(merge), ``4..N-1`` road; ``N-1`` leads back to ``D``. A batch of ``B`` sites with ``V``
+vehicles each is held in :class:`SiteState` as vehicle-major ``[V, B]`` tensors (position,
+soc, charging ticks left) plus per-site ``[B]`` tensors (the decision of the vehicle at ``D``,
+tick count). Vehicle-major because every reduction over vehicles then runs over contiguous
+rows, and per-site tensors broadcast against per-vehicle ones without reshaping.
+
+One tick (:meth:`Site.tick`) updates every vehicle of every site synchronously from the state
+at the start of the tick, with a fixed number of tensor operations whatever ``B`` and ``V``:
+
+1. the closure of ``X`` is an input (drawn by :meth:`Site.closures` from the common random
+   numbers of :mod:`fleet_torchrl.rng`);
+2. each vehicle's target is a table lookup indexed by ``pos + N * charge``; a vehicle with
+   charging ticks left has no target;
+3. a vehicle moves iff its target was empty at the start of the tick and is not ``X`` while
+   ``X`` is closed. Occupancy is one 64-bit mask per site (bit ``k`` = node ``k``), with the
+   closed ``X`` counted as occupied, so the test is ``mask & check != 0`` (hence at most 62
+   nodes). Merge priority is folded into the test: the vehicle leaving ``C`` checks the bits
+   of ``M`` *and* ``B``. If ``B`` is occupied and ``M`` is free, the vehicle at ``B`` moves (its
+   only target is ``M``), so ``C`` waits; if ``M`` is occupied neither moves. This is exactly
+   "the one at B goes, the one at C waits";
+4. energy: charging ``+E_charge/T_C`` capped at 100, moving ``-e_move``, otherwise ``-e_idle``;
+5. a vehicle entering ``C`` gets ``T_C`` charging ticks;
+6. counters: a move into ``D`` is a completed trip and needs a decision; a vehicle at ``D`` that
+   decided to charge and did not enter ``C`` makes a queue tick;
+7. failure: any ``soc < SoC_low`` after the tick.
+
+Choices the SPEC leaves open (documented in docs/MODEL.md as well):
+
+* ``soc`` is float32. ``TC`` for a vehicle that has finished charging but is stuck at ``C`` is
+  ``1 / (T_C + 1)`` (its ticks left are 0, the charger is still not free).
+* A vehicle arriving at ``D`` has its decision cleared; the caller must decide before the
+  site's next tick (the environment does not tick sites that await a decision, the evaluation
+  loop decides right after each tick).
+* Sites can be frozen with the ``active`` mask (failed sites in evaluation, sites waiting for
+  a decision in the environment): a frozen site's state and counters do not change at all.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import torch
+from torch import Tensor
+
+from . import rng
+from .config import SiteConfig
+
+D, C, BYPASS, M = 0, 1, 2, 3
+MAX_NODES = 62
+
+
+@dataclass
+class SiteState:
+    """State of ``B`` sites. Tensors are updated in place by :meth:`Site.tick`."""
+
+    pos: Tensor  # [V, B] int64 node of each vehicle
+    soc: Tensor  # [V, B] float32 state of charge, 0..100
+    left: Tensor  # [V, B] int64 charging ticks left (0 unless charging at C)
+    charge: Tensor  # [B] bool decision of the vehicle at D (True = charge)
+    tick: Tensor  # [B] int64 ticks this site has run since it was initialised
+
+    @property
+    def batch_size(self) -> int:
+        return self.pos.shape[1]
+
+    def clone(self) -> "SiteState":
+        return SiteState(**{f.name: getattr(self, f.name).clone() for f in fields(self)})
+
+    def update_(self, mask: Tensor, other: "SiteState") -> "SiteState":
+        """Overwrite the sites selected by the ``[B]`` bool ``mask`` with ``other``'s."""
+        for f in fields(self):
+            mine, theirs = getattr(self, f.name), getattr(other, f.name)
+            mine.copy_(torch.where(mask, theirs, mine))  # [B] broadcasts over [V, B]
+        return self
+
+    def to(self, device: torch.device | str) -> "SiteState":
+        return SiteState(**{f.name: getattr(self, f.name).to(device) for f in fields(self)})
+
+
+@dataclass
+class TickOutcome:
+    """What happened in one tick, per site (``[B]`` bool tensors)."""
+
+    arrived: Tensor  # a vehicle moved from N-1 into D: one trip completed, a decision is needed
+    queue: Tensor  # the vehicle at D had decided to charge and could not enter C
+    failed: Tensor  # some soc < SoC_low after the tick
+
+
+class Site:
+    """A site model on a device: the tick rules, initial states and closure draws."""
+
+    def __init__(self, cfg: SiteConfig, device: torch.device | str = "cpu") -> None:
+        self.cfg = cfg
+        self.device = torch.device(device)
+        n = self.n_nodes = cfg.n_nodes
+        self.n_vehicles = cfg.n_vehicles
+        self.t_c = cfg.t_c
+        self.closed_node = cfg.closed_node
+        self.p_c = cfg.p_c
+        self.soc_low = cfg.soc_low
+        self.gain = cfg.e_charge / cfg.t_c
+
+        succ = [0] * n
+        succ[D], succ[C], succ[BYPASS] = BYPASS, M, M
+        for k in range(M, n):
+            succ[k] = (k + 1) % n  # M -> 4, road -> next, N-1 -> D
+        succ_charge = list(succ)
+        succ_charge[D] = C
+        # Node whose occupancy blocks a move: the target, except for the vehicle leaving C,
+        # which checks the virtual node n ("M or B occupied") -- merge priority to B.
+        check = list(succ)
+        check[C] = n
+        check_charge = list(succ_charge)
+        check_charge[C] = n
+        if n > MAX_NODES:
+            raise ValueError(f"n_nodes={n} exceeds {MAX_NODES} (occupancy is a 64-bit mask)")
+        kw = dict(dtype=torch.int64, device=self.device)
+        self._succ = torch.tensor(succ + succ_charge, **kw)
+        # bits a vehicle checks before moving: its target's; the vehicle leaving C checks
+        # M and B (merge priority to the bypass)
+        check = [1 << t for t in succ + succ_charge]
+        check[C] = check[n + C] = (1 << M) | (1 << BYPASS)
+        self._check = torch.tensor(check, **kw)
+        self._bit = torch.tensor([1 << k for k in range(n)], **kw)
+        self._closed_bit = 1 << cfg.closed_node
+        self._delta = torch.tensor([-cfg.e_idle, -cfg.e_move, self.gain, 0.0],
+                                   dtype=torch.float32, device=self.device)
+        self._start_nodes = torch.tensor([k for k in range(n) if k != C], **kw)
+
+    # ------------------------------------------------------------------ random draws
+    def closures(self, seed: int, site_idx: Tensor, ticks: Tensor) -> Tensor:
+        """Whether ``X`` is closed for each (site, tick): bool tensor of the broadcast shape.
+
+        ``site_idx`` and ``ticks`` broadcast against each other, e.g. ``[B]`` and ``[T, 1]``
+        give a ``[T, B]`` block of draws. The tick number is the site's own tick count at the
+        start of the tick (the first tick of a site is tick 0). The draw is
+        ``mix(hash(seed, site, stream) ^ hash(tick)) < p_c * 2**32``: a pure function of the
+        three integers that costs one mixing round per element of the block.
+        """
+        shape = torch.broadcast_shapes(site_idx.shape, ticks.shape)
+        if self.p_c <= 0.0:
+            return torch.zeros(shape, dtype=torch.bool, device=self.device)
+        hs = rng.hash_ints(seed, site_idx, rng.STREAM_CLOSURE, device=self.device)
+        ht = rng.hash_ints(ticks, device=self.device)
+        return rng.combine_below(hs, ht, self.p_c)
+
+    def init_state(self, seed: int, site_idx: Tensor) -> tuple[SiteState, Tensor]:
+        """Random initial states (SPEC §1) as a pure function of ``(seed, site index)``.
+
+        Vehicles sit on distinct nodes drawn uniformly from all nodes but ``C``; ``soc`` is
+        uniform on ``[SoC_low + xi, 100]``. Returns the state and the ``[B]`` bool mask of sites
+        whose vehicle on ``D`` needs a decision at once.
+        """
+        site_idx = site_idx.to(self.device, torch.int64)
+        b, v = site_idx.shape[0], self.n_vehicles
+        cand = self._start_nodes
+        keys = rng.uniform(seed, site_idx[None, :], cand[:, None], rng.STREAM_INIT_POS,
+                           device=self.device)  # [N-1, B]
+        # argsort of iid keys is a uniform random permutation of the candidate nodes
+        pos = cand[torch.argsort(keys, dim=0, stable=True)[:v]]
+        u = rng.uniform(seed, site_idx[None, :], torch.arange(v, device=self.device)[:, None],
+                        rng.STREAM_INIT_SOC, device=self.device)
+        lo = self.soc_low + self.cfg.xi
+        soc = lo + u * (100.0 - lo)
+        state = SiteState(
+            pos=pos,
+            soc=soc,
+            left=torch.zeros(v, b, dtype=torch.int64, device=self.device),
+            charge=torch.zeros(b, dtype=torch.bool, device=self.device),
+            tick=torch.zeros(b, dtype=torch.int64, device=self.device),
+        )
+        return state, (pos == D).any(0)
+
+    # ---------------------------------------------------------------------- the tick
+    def tick(self, s: SiteState, closed: Tensor, active: Tensor | None = None) -> TickOutcome:
+        """Advance every active site by one tick, in place. ``closed``: ``[B]`` bool.
+
+        With ``active=None`` every site advances (the fast path of the evaluation loop).
+        """
+        pos, left = s.pos, s.left
+        idx = pos + s.charge * self.n_nodes
+        tgt = self._succ.take(idx)
+        occ = self._bit.take(pos).sum(0)  # [B] occupancy bits at the start of the tick
+        occ_d = (occ & 1).bool()
+        occ |= closed * self._closed_bit  # a closed X counts as occupied
+        charging = left > 0  # a charging vehicle has no target
+        move = ~((self._check.take(idx) & occ).bool() | charging)
+        if active is not None:
+            move &= active
+            charging &= active
+        code = charging * 2 + move  # 0 idle, 1 move, 2 charge
+        if active is not None:
+            code.masked_fill_(~active, 3)  # 3: frozen, no change
+        s.soc.add_(self._delta.take(code)).clamp_(max=100.0)
+        left.sub_(charging.long())
+        into_c = move & (tgt == C)
+        left.masked_fill_(into_c, self.t_c)
+        queue = occ_d & s.charge & ~into_c.any(0)
+        arrived = (move & (tgt == D)).any(0)
+        s.pos = torch.where(move, tgt, pos)
+        s.charge &= ~arrived  # the newcomer at D has not decided yet
+        failed = (s.soc < self.soc_low).any(0)
+        if active is not None:
+            queue &= active
+            failed &= active
+            s.tick += active
+        else:
+            s.tick += 1
+        return TickOutcome(arrived=arrived, queue=queue, failed=failed)
+
+    @staticmethod
+    def decide(s: SiteState, mask: Tensor, charge: Tensor) -> None:
+        """Record the decision (``charge``: ``[B]`` bool/0-1) of the sites in ``mask``."""
+        s.charge = torch.where(mask, charge.to(torch.bool), s.charge)
