@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any, Optional
+from typing import Any
 
 from omegaconf import MISSING, DictConfig, OmegaConf
 
@@ -87,7 +87,7 @@ class EvalConfig:
     n_sims: int = 1000
     ticks: int = 10000
     seed: int = 0
-    out: Optional[str] = None  # result JSON path; the per-simulation CSV is written beside it
+    out: str | None = None  # result JSON path; the per-simulation CSV is written beside it
     device: str = "cpu"
     chunk: int = 256  # ticks of closure draws generated at once
     progress: bool = True
@@ -172,7 +172,8 @@ def validate_device(path: str, device: str) -> None:
     try:
         dev = torch.device(device)
     except (RuntimeError, TypeError):
-        raise ConfigError(f"{path}={_fmt(device)} is invalid: allowed cpu, cuda, cuda:N, mps") from None
+        raise ConfigError(
+            f"{path}={_fmt(device)} is invalid: allowed cpu, cuda, cuda:N, mps") from None
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise ConfigError(f"{path}={_fmt(device)} is invalid: CUDA is not available here; use cpu")
     if dev.type not in ("cpu", "cuda", "mps"):

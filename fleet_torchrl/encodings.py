@@ -42,6 +42,11 @@ def _charger_ticks(s: SiteState) -> Tensor:
     return ((s.pos == C) * (s.left + 1)).sum(0)
 
 
+@functools.lru_cache(maxsize=64)
+def _partial_scale(t_c: int, device: torch.device) -> Tensor:
+    return torch.tensor([0.01, 0.01, 1.0 / (t_c + 1)], device=device)
+
+
 class Partial(Encoding):
     name = "partial"
 
@@ -53,11 +58,7 @@ class Partial(Encoding):
         soc_d = (soc * (s.pos == D)).sum(0)
         others = torch.where(s.pos > C, soc, 100.0).amin(0)  # neither D (0) nor C (1)
         raw = torch.stack((soc_d, others, _charger_ticks(s).to(torch.float32)), dim=1)
-        return raw * self._scale(site.t_c, soc.device)
-
-    @functools.lru_cache(maxsize=64)
-    def _scale(self, t_c: int, device: torch.device) -> Tensor:
-        return torch.tensor([0.01, 0.01, 1.0 / (t_c + 1)], device=device)
+        return raw * _partial_scale(site.t_c, soc.device)
 
 
 class All(Encoding):

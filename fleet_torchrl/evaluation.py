@@ -38,7 +38,8 @@ def simulate(policy: Policy, site_cfg: SiteConfig, n_sims: int = 1000, ticks: in
              seed: int = 0, device: str | torch.device = "cpu", chunk: int = 256,
              progress: bool = False, desc: str | None = None, site_offset: int = 0
              ) -> dict[str, Tensor]:
-    """Per-simulation records: ``trips``, ``queue``, ``failed``, ``ticks_survived`` (CPU tensors)."""
+    """Per-simulation records (CPU tensors): ``trips``, ``queue``, ``failed``,
+    ``ticks_survived``."""
     device = torch.device(device)
     site = Site(site_cfg, device)
     encode = get_encoding(policy.encoding)
@@ -156,7 +157,8 @@ def records_csv(result: dict[str, Any]) -> str:
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(CSV_FIELDS)
-    for i, row in enumerate(zip(rec["trips"], rec["queue"], rec["failed"], rec["ticks_survived"])):
+    for i, row in enumerate(zip(rec["trips"], rec["queue"], rec["failed"], rec["ticks_survived"],
+                                      strict=True)):
         w.writerow((i, row[0], row[1], int(row[2]), row[3]))
     return buf.getvalue()
 

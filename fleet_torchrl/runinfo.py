@@ -8,11 +8,12 @@ import platform
 import subprocess
 import sys
 import tempfile
+from collections.abc import Callable
 from dataclasses import asdict, is_dataclass
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from importlib import metadata
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 PACKAGES = ("torch", "torchrl", "tensordict", "hydra-core", "omegaconf", "tensorboard", "numpy")
 
@@ -105,7 +106,7 @@ def package_versions() -> dict[str, str | None]:
 def run_info(config: Any = None, seed: int | None = None) -> dict[str, Any]:
     """Provenance: time, command line, git commit, versions, machine, config and seed."""
     info = {
-        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "created": datetime.now(UTC).isoformat(timespec="seconds"),
         "argv": sys.argv,
         "git_commit": git_commit(),
         "python": platform.python_version(),

@@ -68,17 +68,17 @@ class SiteState:
     def batch_size(self) -> int:
         return self.pos.shape[1]
 
-    def clone(self) -> "SiteState":
+    def clone(self) -> SiteState:
         return SiteState(**{f.name: getattr(self, f.name).clone() for f in fields(self)})
 
-    def update_(self, mask: Tensor, other: "SiteState") -> "SiteState":
+    def update_(self, mask: Tensor, other: SiteState) -> SiteState:
         """Overwrite the sites selected by the ``[B]`` bool ``mask`` with ``other``'s."""
         for f in fields(self):
             mine, theirs = getattr(self, f.name), getattr(other, f.name)
             mine.copy_(torch.where(mask, theirs, mine))  # [B] broadcasts over [V, B]
         return self
 
-    def to(self, device: torch.device | str) -> "SiteState":
+    def to(self, device: torch.device | str) -> SiteState:
         return SiteState(**{f.name: getattr(self, f.name).to(device) for f in fields(self)})
 
 
@@ -142,12 +142,18 @@ class Site:
         ``mix(hash(seed, site, stream) ^ hash(tick)) < p_c * 2**32``: a pure function of the
         three integers that costs one mixing round per element of the block.
         """
-        shape = torch.broadcast_shapes(site_idx.shape, ticks.shape)
+        return self.closures_hashed(self.site_hash(seed, site_idx), ticks)
+
+    def site_hash(self, seed: int, site_idx: Tensor) -> Tensor:
+        """The per-site half of the closure draw (cache it while the site index is fixed)."""
+        return rng.hash_ints(seed, site_idx, rng.STREAM_CLOSURE, device=self.device)
+
+    def closures_hashed(self, site_hash: Tensor, ticks: Tensor) -> Tensor:
+        """:meth:`closures` from a precomputed :meth:`site_hash`."""
         if self.p_c <= 0.0:
+            shape = torch.broadcast_shapes(site_hash.shape, ticks.shape)
             return torch.zeros(shape, dtype=torch.bool, device=self.device)
-        hs = rng.hash_ints(seed, site_idx, rng.STREAM_CLOSURE, device=self.device)
-        ht = rng.hash_ints(ticks, device=self.device)
-        return rng.combine_below(hs, ht, self.p_c)
+        return rng.combine_below(site_hash, rng.hash_ints(ticks, device=self.device), self.p_c)
 
     def init_state(self, seed: int, site_idx: Tensor) -> tuple[SiteState, Tensor]:
         """Random initial states (SPEC §1) as a pure function of ``(seed, site index)``.

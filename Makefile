@@ -1,0 +1,46 @@
+# fleet_torchrl make targets. Every target creates and uses the project's own .venv.
+# Hydra overrides go in ARGS, e.g.  make evaluate ARGS="agent=heuristic site=no_closure"
+PYTHON ?= python3
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+ARGS   ?=
+PYTEST_ARGS ?=
+
+.PHONY: help install test test-fast lint format evaluate bench tensorboard clean
+
+help:  ## list the targets
+	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-14s %s\n", $$1, $$2}'
+
+install: $(STAMP)  ## create .venv and install the package with its dev tools
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[dev]'
+	@touch $(STAMP)
+
+test: $(STAMP)  ## run the whole test suite (slow end-to-end tests included)
+	$(PY) -m pytest $(PYTEST_ARGS)
+
+test-fast: $(STAMP)  ## run the tests not marked slow
+	$(PY) -m pytest -m "not slow" $(PYTEST_ARGS)
+
+lint: $(STAMP)  ## ruff
+	$(PY) -m ruff check fleet_torchrl tests
+
+format: $(STAMP)  ## ruff format + import sort
+	$(PY) -m ruff check --fix fleet_torchrl tests
+
+evaluate: $(STAMP)  ## evaluate a policy (SPEC §4); overrides in ARGS
+	$(PY) -m fleet_torchrl.evaluate $(ARGS)
+
+bench: $(STAMP)  ## simulator and evaluation throughput (docs/BENCHMARKS.md)
+	$(PY) -m fleet_torchrl.bench $(ARGS)
+
+tensorboard: $(STAMP)  ## open TensorBoard on the training runs
+	$(VENV)/bin/tensorboard --logdir outputs --bind_all
+
+clean:  ## remove generated outputs (keeps .venv and results/)
+	rm -rf outputs multirun/*/ .pytest_cache .ruff_cache
+	find . -name __pycache__ -type d -not -path './.venv/*' -exec rm -rf {} +

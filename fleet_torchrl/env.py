@@ -1,0 +1,157 @@
+"""The decision process of SPEC §2 as a batched TorchRL environment.
+
+One environment step is one *decision epoch* per site: the action (``0`` pass, ``1`` charge)
+applies to the vehicle waiting at ``D``; the site then runs tick by tick until the next vehicle
+reaches ``D`` (a new decision), the site fails (``terminated``) or the episode's tick budget
+``tau_e`` runs out (``truncated``). Sites finish at different ticks; a site that is done for
+this step is frozen (it does not advance) while the others go on.
+
+Reward: the mean cost of the ticks of the step, a tick costing ``-p_f`` if the site failed in
+it, else ``-p_q`` if it was a queue tick, else 0.
+
+Every site's episode ``k`` uses site index ``k * B + b`` in the common random numbers of
+:mod:`fleet_torchrl.rng`, so the whole stream of initial states and closures is a pure function
+of the seed (:meth:`set_seed`) and the batch size. After a reset a site runs until its first
+decision; in the rare case that it fails before any vehicle reaches ``D`` (only possible with a
+tiny ``xi``), it is redrawn with its next episode index.
+
+Besides ``observation`` the environment reports per-episode counters ``trips``,
+``queue_ticks`` and ``ticks`` (cumulative since the site's reset) for logging.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+from .config import MDPConfig, SiteConfig
+from .encodings import get_encoding
+from .sim import Site
+
+_MAX_REDRAWS = 100
+
+
+class FleetChargingEnv(EnvBase):
+    """Batched charging-site MDP (``batch_size=[num_sites]``)."""
+
+    _batch_locked = True
+
+    def __init__(self, site: SiteConfig | None = None, encoding: str = "partial",
+                 num_sites: int = 1, mdp: MDPConfig | None = None, seed: int = 0,
+                 device: str | torch.device = "cpu") -> None:
+        super().__init__(device=device, batch_size=torch.Size([num_sites]))
+        self.site_cfg = site or SiteConfig()
+        self.mdp = mdp or MDPConfig()
+        self.site = Site(self.site_cfg, self.device)
+        self.encoding = get_encoding(encoding)
+        self.num_sites = b = num_sites
+        n_feat = self.encoding.size(self.site)
+        dev = self.device
+        self.observation_spec = Composite(
+            observation=Bounded(0.0, 1.0, shape=(b, n_feat), dtype=torch.float32, device=dev),
+            trips=Unbounded(shape=(b, 1), dtype=torch.int64, device=dev),
+            queue_ticks=Unbounded(shape=(b, 1), dtype=torch.int64, device=dev),
+            ticks=Unbounded(shape=(b, 1), dtype=torch.int64, device=dev),
+            shape=(b,), device=dev,
+        )
+        self.action_spec = Categorical(2, shape=(b,), dtype=torch.int64, device=dev)
+        self.reward_spec = Unbounded(shape=(b, 1), dtype=torch.float32, device=dev)
+        self.done_spec = Composite(
+            done=Categorical(2, shape=(b, 1), dtype=torch.bool, device=dev),
+            terminated=Categorical(2, shape=(b, 1), dtype=torch.bool, device=dev),
+            truncated=Categorical(2, shape=(b, 1), dtype=torch.bool, device=dev),
+            shape=(b,), device=dev,
+        )
+        self._seed = int(seed)
+        self._episodes = torch.zeros(b, dtype=torch.int64, device=dev)
+        self._arange = torch.arange(b, device=dev)
+        self._site_idx = torch.zeros(b, dtype=torch.int64, device=dev)
+        self._hash = torch.zeros(b, dtype=torch.int64, device=dev)
+        self._trips = torch.zeros(b, dtype=torch.int64, device=dev)
+        self._queue = torch.zeros(b, dtype=torch.int64, device=dev)
+        self.state, _ = self.site.init_state(self._seed, self._site_idx)
+
+    # ------------------------------------------------------------------ TorchRL hooks
+    def _set_seed(self, seed: int | None) -> None:
+        self._seed = int(seed) if seed is not None else 0
+        self._episodes.zero_()
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        mask = None
+        if tensordict is not None and "_reset" in tensordict.keys():
+            mask = tensordict.get("_reset").reshape(self.num_sites)
+        if mask is None:
+            mask = torch.ones(self.num_sites, dtype=torch.bool, device=self.device)
+        self._start_episodes(mask)
+        return self._observe()
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        b = self.num_sites
+        s = self.state
+        self.site.decide(s, torch.ones(b, dtype=torch.bool, device=self.device),
+                         tensordict.get("action").reshape(b))
+        active = torch.ones(b, dtype=torch.bool, device=self.device)
+        cost = torch.zeros(b, dtype=torch.float32, device=self.device)
+        n_ticks = torch.zeros(b, dtype=torch.int64, device=self.device)
+        terminated = torch.zeros(b, dtype=torch.bool, device=self.device)
+        truncated = torch.zeros_like(terminated)
+        p_f, p_q, tau = self.mdp.p_f, self.mdp.p_q, self.mdp.tau_e
+        while True:
+            out = self.site.tick(s, self.site.closures_hashed(self._hash, s.tick), active)
+            cost -= torch.where(out.failed, p_f, torch.where(out.queue, p_q, 0.0))
+            n_ticks += active
+            self._trips += out.arrived
+            self._queue += out.queue
+            terminated |= out.failed
+            out_of_time = active & (s.tick >= tau) & ~out.failed
+            truncated |= out_of_time
+            active &= ~(out.arrived | out.failed | out_of_time)
+            if not bool(active.any()):
+                break
+        td = self._observe()
+        td.set("reward", (cost / n_ticks).unsqueeze(-1))
+        td.set("terminated", terminated.unsqueeze(-1))
+        td.set("truncated", truncated.unsqueeze(-1))
+        td.set("done", (terminated | truncated).unsqueeze(-1))
+        return td
+
+    # ------------------------------------------------------------------ internals
+    def _observe(self) -> TensorDictBase:
+        return TensorDict(
+            {
+                "observation": self.encoding(self.site, self.state),
+                "trips": self._trips.unsqueeze(-1).clone(),
+                "queue_ticks": self._queue.unsqueeze(-1).clone(),
+                "ticks": self.state.tick.unsqueeze(-1).clone(),
+            },
+            batch_size=self.batch_size, device=self.device,
+        )
+
+    def _start_episodes(self, mask: torch.Tensor) -> None:
+        """Draw new initial states for the sites in ``mask`` and run them to a decision."""
+        todo = mask.clone()
+        for _ in range(_MAX_REDRAWS):
+            site_idx = self._episodes * self.num_sites + self._arange
+            self._episodes += todo
+            new, needs = self.site.init_state(self._seed, site_idx)
+            self.state.update_(todo, new)
+            self._site_idx = torch.where(todo, site_idx, self._site_idx)
+            self._hash = torch.where(todo, self.site.site_hash(self._seed, site_idx), self._hash)
+            self._trips.masked_fill_(todo, 0)
+            self._queue.masked_fill_(todo, 0)
+            running = todo & ~needs
+            failed = torch.zeros_like(todo)
+            while bool(running.any()):
+                out = self.site.tick(self.state, self.site.closures_hashed(self._hash,
+                                                                          self.state.tick),
+                                     running)
+                self._trips += out.arrived
+                failed |= out.failed
+                running &= ~(out.arrived | out.failed)
+            if not bool(failed.any()):
+                return
+            todo = failed
+        raise RuntimeError(f"{_MAX_REDRAWS} initial states in a row failed before their first "
+                           "decision: raise site.xi or lower the energy costs")

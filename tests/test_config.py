@@ -1,0 +1,91 @@
+"""Config composition (every option of every group) and validation messages."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+
+from fleet_torchrl.config import Config, ConfigError, register_configs, to_config
+
+CONF = Path(__file__).resolve().parents[1] / "conf"
+register_configs()
+
+
+def group_options(group: str) -> list[str]:
+    return sorted(p.stem for p in (CONF / group).glob("*.yaml"))
+
+
+def _compose(overrides: list[str]) -> Config:
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        return to_config(compose(config_name="config", overrides=overrides))
+
+
+@pytest.mark.parametrize("group", ["site", "state", "agent", "eval", "mdp"])
+def test_every_option_composes_and_validates(group):
+    options = group_options(group)
+    assert options, f"conf/{group} is empty"
+    for opt in options:
+        cfg = _compose([f"{group}={opt}"])
+        assert isinstance(cfg, Config)
+
+
+def test_defaults_are_the_spec_values():
+    cfg = _compose([])
+    s = cfg.site
+    assert (s.n_nodes, s.n_vehicles, s.p_c, s.t_c, s.soc_low) == (15, 3, 0.8, 30, 30.0)
+    assert (s.e_move, s.e_idle, s.e_charge, s.closed_node, s.xi) == (0.5, 0.02, 40.0, 9, 10.0)
+    assert (cfg.mdp.p_f, cfg.mdp.p_q, cfg.mdp.gamma, cfg.mdp.tau_e) == (50.0, 1.0, 0.9, 3000)
+    assert cfg.agent.name == "rule" and cfg.agent.threshold == 40.0
+    assert (cfg.eval.n_sims, cfg.eval.ticks) == (1000, 10000)
+
+
+def test_site_variants():
+    assert _compose(["site=five_vehicles"]).site.n_vehicles == 5
+    assert _compose(["site=no_closure"]).site.p_c == 0.0
+    slow = _compose(["site=slow_charger"]).site
+    assert slow.t_c == 50 and slow.e_charge == 40.0
+
+
+@pytest.mark.parametrize("override, field", [
+    ("site.n_vehicles=14", "site.n_vehicles"),
+    ("site.n_vehicles=0", "site.n_vehicles"),
+    ("site.p_c=1.5", "site.p_c"),
+    ("site.p_c=-0.1", "site.p_c"),
+    ("site.t_c=0", "site.t_c"),
+    ("site.n_nodes=4", "site.n_nodes"),
+    ("site.n_nodes=100", "site.n_nodes"),
+    ("site.closed_node=2", "site.closed_node"),
+    ("site.closed_node=15", "site.closed_node"),
+    ("site.xi=80", "site.xi"),
+    ("agent.threshold=101", "agent.threshold"),
+    ("agent=heuristic agent.upper=-1", "agent.upper"),
+    ("state.name=foo", "state.name"),
+    ("mdp.gamma=1.5", "mdp.gamma"),
+    ("eval.n_sims=0", "eval.n_sims"),
+    ("eval.device=gpu0", "eval.device"),
+])
+def test_bad_values_name_the_field(override, field):
+    with pytest.raises(ConfigError) as e:
+        _compose(override.split())
+    msg = str(e.value)
+    assert msg.startswith(f"{field}=") and "allowed" in msg and "\n" not in msg
+
+
+def test_typos_and_wrong_types_are_rejected_by_the_schema():
+    from omegaconf.errors import ConfigKeyError, ValidationError
+
+    with pytest.raises((ConfigKeyError, Exception)):
+        _compose(["site.n_vehicle=3"])
+    with pytest.raises((ValidationError, Exception)):
+        _compose(["site.n_vehicles=three"])
+
+
+def test_cli_reports_one_line_error_and_exit_code():
+    r = subprocess.run([sys.executable, "-m", "fleet_torchrl.evaluate", "site.p_c=2"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2
+    assert r.stderr.strip().splitlines()[-1] == "error: site.p_c=2.0 is invalid: allowed [0.0, 1.0]"

@@ -1,0 +1,103 @@
+"""The TorchRL environment (SPEC §2): specs, decision epochs, rewards, resets, seeding."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.envs.utils import check_env_specs
+
+from fleet_torchrl.config import MDPConfig, SiteConfig
+from fleet_torchrl.env import FleetChargingEnv
+from fleet_torchrl.policies import HeuristicPolicy, RulePolicy, as_td_module
+from fleet_torchrl.sim import D
+
+
+@pytest.mark.parametrize("encoding", ["partial", "all"])
+@pytest.mark.parametrize("num_sites", [1, 64])
+def test_check_env_specs(encoding, num_sites):
+    env = FleetChargingEnv(encoding=encoding, num_sites=num_sites)
+    check_env_specs(env, seed=0)
+    n_feat = 3 if encoding == "partial" else 16
+    assert env.observation_spec["observation"].shape == (num_sites, n_feat)
+    assert env.action_spec.shape == (num_sites,)
+
+
+def test_every_step_starts_at_a_decision():
+    env = FleetChargingEnv(num_sites=16, seed=1)
+    td = env.reset()
+    for _ in range(30):
+        # a vehicle sits at D awaiting a decision in every site that is not done
+        assert (env.state.pos == D).any(0).all()
+        td = env.step(td.set("action", torch.randint(0, 2, (16,))))
+        td = env.step_mdp(td) if not td["next", "done"].any() else env.reset()
+
+
+def test_reward_is_mean_tick_cost_and_counters_add_up():
+    env = FleetChargingEnv(num_sites=32, seed=2)
+    td = env.rollout(100, as_td_module(RulePolicy()), break_when_any_done=False)
+    ticks = td["next", "ticks"] - td["ticks"]
+    queue = td["next", "queue_ticks"] - td["queue_ticks"]
+    trips = td["next", "trips"] - td["trips"]
+    ok = ~td["next", "done"]  # counters restart at resets
+    assert (ticks[ok] >= 1).all()
+    # rule never fails on the default site here: the cost is queue ticks only
+    assert not td["next", "terminated"].any()
+    assert torch.allclose(td["next", "reward"][ok], -queue[ok].float() / ticks[ok].float())
+    assert (trips[ok] == 1).all()  # a step ends with exactly one arrival at D
+    assert td["next", "reward"].min() < 0  # the rule queues
+
+
+def test_failure_terminates_with_failure_cost():
+    site = SiteConfig(e_move=5.0, xi=60.0, soc_low=30.0)
+    env = FleetChargingEnv(site=site, num_sites=8, seed=0)
+    pass_always = TensorDict({"action": torch.zeros(8, dtype=torch.int64)}, batch_size=[8])
+    td = env.reset()
+    for _ in range(50):
+        td = env.step(td.update(pass_always))
+        term = td["next", "terminated"].squeeze(-1)
+        if term.any():
+            ticks = (td["next", "ticks"] - td["ticks"]).squeeze(-1)
+            r = td["next", "reward"].squeeze(-1)
+            assert torch.allclose(r[term], -50.0 / ticks[term].float())
+            assert td["next", "done"].squeeze(-1)[term].all()
+            return
+        td = env.step_mdp(td)
+    pytest.fail("never failed with 5 energy per move and no charging")
+
+
+def test_truncation_at_tick_budget():
+    env = FleetChargingEnv(num_sites=4, mdp=MDPConfig(tau_e=60), seed=0)
+    td = env.rollout(100, as_td_module(RulePolicy()), break_when_any_done=True)
+    last = td[:, -1]
+    assert last["next", "truncated"].any() and not last["next", "terminated"].any()
+    assert (last["next", "ticks"][last["next", "truncated"]] >= 60).all()
+
+
+def test_partial_reset_only_touches_masked_sites():
+    env = FleetChargingEnv(num_sites=6, seed=3)
+    td = env.reset()
+    td = env.step_mdp(env.step(td.set("action", torch.ones(6, dtype=torch.int64))))
+    before = env.state.clone()
+    mask = torch.tensor([True, False, True, False, False, False])
+    inp = td.clone().set("_reset", mask.unsqueeze(-1))
+    out = env.reset(inp)
+    keep = ~mask
+    assert torch.equal(env.state.pos[:, keep], before.pos[:, keep])
+    assert torch.equal(env.state.soc[:, keep], before.soc[:, keep])
+    assert torch.equal(out["observation"][keep], td["observation"][keep])
+    assert torch.equal(env._observe()["observation"], out["observation"])
+    assert not torch.equal(env.state.soc[:, mask], before.soc[:, mask])
+    assert (out["queue_ticks"][mask] == 0).all()
+
+
+def test_same_seed_same_rollout_and_new_seed_differs():
+    def roll(seed):
+        env = FleetChargingEnv(num_sites=8)
+        env.set_seed(seed)
+        return env.rollout(40, as_td_module(HeuristicPolicy()), break_when_any_done=False)
+
+    a, b, c = roll(5), roll(5), roll(6)
+    assert torch.equal(a["next", "observation"], b["next", "observation"])
+    assert torch.equal(a["next", "reward"], b["next", "reward"])
+    assert not torch.equal(a["next", "observation"], c["next", "observation"])

@@ -1,0 +1,150 @@
+"""Evaluation protocol (SPEC §4): records, determinism, pairing, files, CLI."""
+
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from fleet_torchrl.config import SiteConfig
+from fleet_torchrl.encodings import get_encoding
+from fleet_torchrl.evaluation import (
+    compare,
+    evaluate_policy,
+    gain_over,
+    load_result,
+    save_result,
+    simulate,
+)
+from fleet_torchrl.policies import HeuristicPolicy, Policy, RulePolicy
+from fleet_torchrl.sim import C, D, Site, SiteState
+
+
+class Always(Policy):
+    def __init__(self, action):
+        super().__init__()
+        self.action = action
+        self.name = f"always{action}"
+
+    def forward(self, obs):
+        return torch.full(obs.shape[:-1], self.action, dtype=torch.int64)
+
+
+def test_encodings_on_a_hand_built_state():
+    site = Site(SiteConfig())
+    s = SiteState(pos=torch.tensor([[D, C], [C, 5], [7, 8]]),
+                  soc=torch.tensor([[38.0, 50.0], [70.0, 90.0], [60.0, 45.0]]),
+                  left=torch.tensor([[0, 0], [9, 0], [0, 0]]),
+                  charge=torch.tensor([False, False]), tick=torch.zeros(2, dtype=torch.int64))
+    part = get_encoding("partial")(site, s)
+    assert torch.allclose(part[0], torch.tensor([0.38, 0.60, 10 / 31]))
+    # site 1: nobody at D, finished vehicle stuck at C counts as busy: 1 / (T_C + 1)
+    assert torch.allclose(part[1], torch.tensor([0.0, 0.45, 1 / 31]))
+    full = get_encoding("all")(site, s)
+    assert full.shape == (2, 16)
+    assert torch.allclose(full[0, [D, C, 7]], torch.tensor([0.38, 0.70, 0.60]))
+    assert full[0, [2, 3, 4, 5, 6, 8]].abs().sum() == 0
+    assert full[0, -1] == pytest.approx(10 / 31)
+    lone = SiteState(pos=torch.tensor([[D]]), soc=torch.tensor([[50.0]]),
+                     left=torch.zeros(1, 1, dtype=torch.int64), charge=torch.tensor([False]),
+                     tick=torch.zeros(1, dtype=torch.int64))
+    assert torch.allclose(get_encoding("partial")(site, lone), torch.tensor([[0.5, 1.0, 0.0]]))
+
+
+def test_baseline_decisions():
+    obs = torch.tensor([[0.40, 0.5, 0.0], [0.41, 0.5, 0.0], [0.55, 0.6, 0.0], [0.55, 0.6, 0.3],
+                        [0.55, 0.5, 0.0], [0.65, 0.9, 0.0]])
+    assert RulePolicy()(obs).tolist() == [1, 0, 0, 0, 0, 0]
+    assert HeuristicPolicy()(obs).tolist() == [1, 1, 1, 0, 0, 0]
+
+
+def test_same_seed_same_numbers_and_sims_are_paired():
+    site = SiteConfig()
+    a = simulate(RulePolicy(), site, 24, 600, seed=3)
+    b = simulate(RulePolicy(), site, 24, 600, seed=3)
+    for k in a:
+        assert torch.equal(a[k], b[k])
+    # simulation i depends only on (seed, i): a subset gives the same records
+    sub = simulate(RulePolicy(), site, 10, 600, seed=3)
+    assert torch.equal(sub["trips"], a["trips"][:10])
+    other = simulate(RulePolicy(), site, 24, 600, seed=4)
+    assert not torch.equal(other["trips"], a["trips"])
+
+
+def test_failures_stop_the_counters():
+    rec = simulate(Always(0), SiteConfig(), 50, 3000, seed=0)  # never charges: all fail
+    assert rec["failed"].all()
+    assert (rec["ticks_survived"] < 3000).all()
+    longer = simulate(Always(0), SiteConfig(), 50, 6000, seed=0)
+    assert torch.equal(longer["trips"], rec["trips"])  # nothing counted after failure
+    assert torch.equal(longer["ticks_survived"], rec["ticks_survived"])
+
+
+def test_result_files_and_pairwise_comparison(tmp_path):
+    site = SiteConfig()
+    rule = evaluate_policy(RulePolicy(), site, 40, 2000, seed=0)
+    heur = evaluate_policy(HeuristicPolicy(), site, 40, 2000, seed=0)
+    for key in ("policy", "n_sims", "ticks", "seed", "trips_mean", "trips_std", "queue_mean",
+                "queue_std", "failure_rate", "ticks_survived_mean", "site"):
+        assert key in rule
+    js, cs = save_result(rule, tmp_path / "rule.json")
+    save_result(heur, tmp_path / "heur.json")
+    assert load_result(js)["trips_mean"] == rule["trips_mean"]
+    rows = list(csv.DictReader(cs.open()))
+    assert len(rows) == 40 and set(rows[0]) == {"sim", "trips", "queue", "failed",
+                                                "ticks_survived"}
+    g = compare(tmp_path / "heur.json", js)
+    diff = torch.tensor(heur["records"]["trips"]) - torch.tensor(rule["records"]["trips"])
+    assert g["gain_pct"] == pytest.approx(100 * diff.double().mean().item() / rule["trips_mean"])
+    assert g["gain_ci95"] > 0 and len(g["per_sim_gain_pct"]) == 40
+    assert gain_over(rule, rule)["gain_pct"] == 0.0
+    bad = dict(rule, seed=1)
+    with pytest.raises(ValueError, match="seed differs"):
+        gain_over(heur, bad)
+    with pytest.raises(FileNotFoundError):
+        load_result(tmp_path / "missing.json")
+    (tmp_path / "junk.json").write_text("{not json")
+    with pytest.raises(ValueError, match="not valid JSON"):
+        load_result(tmp_path / "junk.json")
+
+
+def test_cli_end_to_end(tmp_path):
+    out = tmp_path / "res" / "rule.json"
+    r = subprocess.run([sys.executable, "-m", "fleet_torchrl.evaluate", "agent=rule",
+                        "eval.n_sims=20", "eval.ticks=500", f"eval.out={out}",
+                        "eval.progress=false", f"hydra.run.dir={tmp_path / 'hydra'}"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "| rule |" in r.stdout
+    res = json.loads(out.read_text())
+    assert res["n_sims"] == 20 and res["ticks"] == 500 and res["policy"] == "rule"
+    assert res["site"]["n_vehicles"] == 3
+    meta = res["meta"]
+    assert meta["seed"] == 0 and meta["packages"]["torchrl"] == "0.14.1"
+    assert meta["config"]["agent"]["threshold"] == 40.0
+    assert out.with_suffix(".csv").exists()
+
+
+@pytest.mark.slow
+def test_calibration_thesis_protocol():
+    """Acceptance of SPEC §4 on the default site: 1000 sims x 10 000 ticks, seed 0."""
+    rule = evaluate_policy(RulePolicy(), SiteConfig(), 1000, 10_000, seed=0)
+    assert abs(rule["trips_mean"] / 1134 - 1) < 0.02
+    assert rule["failure_rate"] == 0.0
+    assert 400 <= rule["queue_mean"] <= 600
+    heur = evaluate_policy(HeuristicPolicy(), SiteConfig(), 1000, 10_000, seed=0)
+    assert gain_over(heur, rule)["gain_pct"] >= 1.5
+
+
+def test_compare_cli(tmp_path):
+    from fleet_torchrl.compare import main
+
+    site = SiteConfig()
+    save_result(evaluate_policy(RulePolicy(), site, 20, 800, seed=0), tmp_path / "r.json")
+    save_result(evaluate_policy(HeuristicPolicy(), site, 20, 800, seed=0), tmp_path / "h.json")
+    assert main([str(tmp_path / "h.json"), str(tmp_path / "r.json")]) == 0
+    assert main([str(tmp_path / "h.json"), str(tmp_path / "nope.json")]) == 2
