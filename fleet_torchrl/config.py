@@ -81,6 +81,66 @@ class HeuristicAgentConfig(AgentConfig):
 
 
 @dataclass
+class TabularAgentConfig(AgentConfig):
+    """Tabular Q-learning on the discretised ``partial`` state (SPEC §3)."""
+
+    name: str = "tabular"
+    num_sites: int = 64  # sites simulated in parallel; one round = one episode per site
+    k: float = 100.0  # learning rate k / (t + k), t = visits of the state-action pair
+    eps_start: float = 1.0  # epsilon of the first episode
+    eps_end: float = 0.3  # epsilon_min
+    eps_decay_episodes: int = 40  # episodes (per site) over which epsilon decays to eps_end
+    policy: str | None = None  # saved policy for evaluation (default results/policies/tabular)
+
+
+@dataclass
+class DQNAgentConfig(AgentConfig):
+    """Deep Q-learning on TorchRL (SPEC §3); the network is the ``network`` group."""
+
+    name: str = "dqn"
+    num_sites: int = 8  # sites simulated in parallel; one round = one episode per site
+    steps_per_round: int = 450  # decisions collected per site per round (covers tau_e ticks)
+    eps_start: float = 1.0
+    eps_end: float = 0.05
+    eps_decay_frames: int = 250_000  # frames (decisions, all sites) to anneal epsilon
+    double_dqn: bool = False
+    prioritized: bool = False  # prioritized replay (alpha 0.6, beta 0.4)
+    updates_per_round: int = 400  # gradient steps after each collected round
+    policy: str | None = None  # saved policy for evaluation (default results/policies/dqn_<state>)
+
+
+@dataclass
+class NetworkConfig:
+    """Q-network and its optimisation (SPEC §3 table; grid-searched by ``make grid``)."""
+
+    name: str = "partial"
+    depth: int = 3  # hidden layers
+    width: int = 32  # units per hidden layer
+    lr: float = 1e-3  # Adam learning rate
+    weight_decay: float = 0.01  # Adam L2 regularisation
+    batch_size: int = 64
+    buffer_size: int = 10_000
+    target_update: int = 500  # gradient steps between hard target-network copies
+
+
+@dataclass
+class TrainConfig:
+    """Training schedule, periodic evaluation, early stopping, checkpoints, logging."""
+
+    max_episodes: int = 10_000  # N_E: training episodes in total (all sites)
+    eval_every: int = 5  # rounds between evaluations of the greedy policy
+    eval_sims: int = 200  # evaluation sites (fixed common random numbers)
+    eval_ticks: int = 3000
+    eval_seed: int = 1_000_003  # distinct from the final evaluation's seed
+    patience: int = 8  # evaluations without improvement before stopping (0 = never stop)
+    checkpoint_every: int = 5  # rounds between checkpoints
+    out_dir: str | None = None  # best policy goes here; default results/policies/<run name>
+    device: str = "cpu"
+    tensorboard: bool = True
+    progress: bool = True
+
+
+@dataclass
 class EvalConfig:
     """Evaluation protocol of SPEC §4 (thesis: 1000 simulations x 10 000 ticks)."""
 
@@ -99,13 +159,18 @@ class Config:
     state: StateConfig = field(default_factory=StateConfig)
     mdp: MDPConfig = field(default_factory=MDPConfig)
     agent: Any = MISSING
+    network: NetworkConfig = field(default_factory=NetworkConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     seed: int = 0
+    resume: bool = False
 
 
 AGENT_SCHEMAS: dict[str, type] = {
     "rule": RuleAgentConfig,
     "heuristic": HeuristicAgentConfig,
+    "tabular": TabularAgentConfig,
+    "dqn": DQNAgentConfig,
 }
 ENCODINGS = ("partial", "all")
 
@@ -120,6 +185,8 @@ def register_configs() -> None:
     cs.store(group="state", name="base_state", node=StateConfig)
     cs.store(group="mdp", name="base_mdp", node=MDPConfig)
     cs.store(group="eval", name="base_eval", node=EvalConfig)
+    cs.store(group="network", name="base_network", node=NetworkConfig)
+    cs.store(group="train", name="base_train", node=TrainConfig)
     for name, schema in AGENT_SCHEMAS.items():
         cs.store(group="agent", name=f"base_{name}", node=schema)
 
@@ -187,7 +254,44 @@ def validate_agent(a: Any, path: str = "agent") -> Any:
         check_range(f"{path}.threshold", a.threshold, 0.0, 100.0)
     if name == "heuristic":
         check_range(f"{path}.upper", a.upper, 0.0, 100.0)
+    if name in ("tabular", "dqn"):
+        check_range(f"{path}.eps_start", a.eps_start, 0.0, 1.0)
+        check_range(f"{path}.eps_end", a.eps_end, 0.0, a.eps_start,
+                    allowed=f"[0, eps_start = {a.eps_start}]")
+    if name in ("tabular", "dqn"):
+        check_range(f"{path}.num_sites", a.num_sites, 1, 1_000_000)
+    if name == "tabular":
+        check_range(f"{path}.k", a.k, 1e-9, None, allowed="> 0")
+        check_range(f"{path}.eps_decay_episodes", a.eps_decay_episodes, 1, None)
+    if name == "dqn":
+        check_range(f"{path}.eps_decay_frames", a.eps_decay_frames, 1, None)
+        check_range(f"{path}.steps_per_round", a.steps_per_round, 1, None)
+        check_range(f"{path}.updates_per_round", a.updates_per_round, 0, None)
     return a
+
+
+def validate_network(n: NetworkConfig, path: str = "network") -> NetworkConfig:
+    check_range(f"{path}.depth", n.depth, 0, 64)
+    check_range(f"{path}.width", n.width, 1, 65_536)
+    check_range(f"{path}.lr", n.lr, 1e-12, 1.0, allowed="(0, 1]")
+    check_range(f"{path}.weight_decay", n.weight_decay, 0.0, 10.0)
+    check_range(f"{path}.batch_size", n.batch_size, 1, n.buffer_size,
+                allowed=f"[1, buffer_size = {n.buffer_size}]")
+    check_range(f"{path}.buffer_size", n.buffer_size, 1, 100_000_000)
+    check_range(f"{path}.target_update", n.target_update, 1, None)
+    return n
+
+
+def validate_train(t: TrainConfig, path: str = "train") -> TrainConfig:
+    check_range(f"{path}.max_episodes", t.max_episodes, 1, None)
+    check_range(f"{path}.eval_every", t.eval_every, 1, None)
+    check_range(f"{path}.eval_sims", t.eval_sims, 1, 10**7)
+    check_range(f"{path}.eval_ticks", t.eval_ticks, 1, 10**8)
+    check_range(f"{path}.eval_seed", t.eval_seed, 0, 2**32 - 1)
+    check_range(f"{path}.patience", t.patience, 0, None)
+    check_range(f"{path}.checkpoint_every", t.checkpoint_every, 1, None)
+    validate_device(f"{path}.device", t.device)
+    return t
 
 
 def validate(cfg: Config) -> Config:
@@ -199,6 +303,8 @@ def validate(cfg: Config) -> Config:
     check_range("mdp.p_q", cfg.mdp.p_q, 0.0, None)
     check_range("mdp.gamma", cfg.mdp.gamma, 0.0, 1.0)
     validate_agent(cfg.agent)
+    validate_network(cfg.network)
+    validate_train(cfg.train)
     check_range("eval.n_sims", cfg.eval.n_sims, 1, 10**8)
     check_range("eval.ticks", cfg.eval.ticks, 1, 10**9)
     check_range("eval.seed", cfg.eval.seed, 0, 2**32 - 1)

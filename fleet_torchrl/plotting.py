@@ -1,0 +1,72 @@
+"""Figures: policy maps (SPEC §5 item 2) and the box plot of the main comparison."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import torch  # noqa: E402
+from matplotlib.colors import ListedColormap  # noqa: E402
+
+from .policies import Policy  # noqa: E402
+from .runinfo import atomic_write  # noqa: E402
+
+TC_TABULAR = (0.0, 0.5)  # free / busy: the tabular state only sees TC > 0
+TC_DQN = (0.0, 0.2, 0.4, 0.6, 0.8, 1.0)
+_CMAP = ListedColormap(["#d9e6f2", "#d95f02"])  # pass, charge
+
+
+@torch.no_grad()
+def policy_map(policy: Policy, tcs: tuple[float, ...], n: int = 101) -> torch.Tensor:
+    """Actions on a grid of ``partial`` states: ``[len(tcs), n (soc_D), n (lowest soc)]``."""
+    if policy.encoding != "partial":
+        raise ValueError(f"policy maps need the partial encoding, {policy.name} uses "
+                         f"{policy.encoding}")
+    soc = torch.linspace(0.0, 1.0, n)
+    y, x = torch.meshgrid(soc, soc, indexing="ij")
+    maps = []
+    for tc in tcs:
+        obs = torch.stack([y, x, torch.full_like(x, tc)], dim=-1).reshape(-1, 3)
+        dev = next(iter(policy.buffers()), next(iter(policy.parameters()), torch.empty(0))).device
+        maps.append(policy(obs.to(dev)).reshape(n, n).cpu())
+    return torch.stack(maps)
+
+
+def plot_policy_map(policy: Policy, tcs: tuple[float, ...], title: str | None = None):
+    """Figure with one panel per ``TC`` value: orange = charge, pale = pass."""
+    maps = policy_map(policy, tcs)
+    fig, axes = plt.subplots(1, len(tcs), figsize=(2.6 * len(tcs) + 0.6, 2.9), sharey=True,
+                             squeeze=False)
+    for ax, tc, m in zip(axes[0], tcs, maps, strict=True):
+        ax.imshow(m.numpy(), origin="lower", extent=(0, 100, 0, 100), cmap=_CMAP, vmin=0,
+                  vmax=1, aspect="auto", interpolation="nearest")
+        label = "free" if tc == 0 else ("busy" if tcs == TC_TABULAR else f"{tc:.1f}")
+        ax.set_title(f"TC = {label}", fontsize=9)
+        ax.set_xlabel("lowest soc of the others")
+    axes[0][0].set_ylabel("soc at D")
+    fig.suptitle(title or f"{policy.name}: charge (orange) / pass", fontsize=10)
+    fig.tight_layout()
+    return fig
+
+
+def save_figure(fig, path: str | Path) -> Path:
+    path = Path(path)
+    out = atomic_write(path, lambda f: fig.savefig(f, format=path.suffix.lstrip(".") or "png",
+                                                   dpi=110), mode="wb")
+    plt.close(fig)
+    return out
+
+
+def plot_gain_boxplot(gains: dict[str, list[float]], title: str):
+    """Box plot of each simulation's trips as % over the benchmark's mean, per policy."""
+    fig, ax = plt.subplots(figsize=(1.5 * len(gains) + 2, 3.6))
+    ax.boxplot(list(gains.values()), showfliers=True, flierprops={"markersize": 2})
+    ax.set_xticks(range(1, len(gains) + 1), list(gains), rotation=15)
+    ax.axhline(0.0, color="grey", lw=0.8, ls="--")
+    ax.set_ylabel("trips, % over rule mean")
+    ax.set_title(title, fontsize=10)
+    fig.tight_layout()
+    return fig

@@ -1,0 +1,54 @@
+"""Command line: train a learned policy (SPEC §3).
+
+    python -m fleet_torchrl.train agent=tabular
+    python -m fleet_torchrl.train agent=dqn state=partial
+    python -m fleet_torchrl.train agent=dqn state=all network.width=128 train.max_episodes=4000
+
+Logs to TensorBoard under the Hydra run directory (``outputs/train/<time>/tb``), keeps the best
+policy by periodic evaluation in ``results/policies/<name>/policy.pt`` (or ``train.out_dir``)
+and checkpoints to ``<run dir>/checkpoint.ckpt``. A killed run continues with
+``resume=true hydra.run.dir=<its run dir>``.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig
+
+from .config import Config, ConfigError, register_configs, to_config
+from .runinfo import run_info, write_json
+
+register_configs()
+
+
+def train(cfg: Config, run_dir: str | Path) -> dict:
+    from .training import Trainer
+
+    write_json(Path(run_dir) / "run_info.json", run_info(cfg, seed=cfg.seed))
+    trainer = Trainer(cfg, run_dir)
+    summary = trainer.run()
+    best = summary["best"] or {}
+    print(f"{summary['name']}: {summary['rounds']} rounds, {summary['episodes']} episodes, "
+          f"{summary['wall_s']:.0f} s; best eval {best.get('trips', float('nan')):.1f} trips "
+          f"({best.get('gain_pct', float('nan')):+.2f} % vs rule), failure rate "
+          f"{best.get('failure_rate', float('nan')):.3f}; policy -> {summary['policy']}")
+    return summary
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="config")
+def main(dcfg: DictConfig) -> float:
+    try:
+        cfg = to_config(dcfg)
+        summary = train(cfg, HydraConfig.get().runtime.output_dir)
+    except (ConfigError, FileNotFoundError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)
+    return (summary["best"] or {}).get("trips", float("nan"))
+
+
+if __name__ == "__main__":
+    main()
