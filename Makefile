@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.installed
 ARGS   ?=
 PYTEST_ARGS ?=
 
-.PHONY: help install test test-fast lint format evaluate bench tensorboard clean
+.PHONY: help install test test-fast lint format table train evaluate grid bench tensorboard clean
 
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-14s %s\n", $$1, $$2}'
@@ -32,6 +32,16 @@ lint: $(STAMP)  ## ruff
 format: $(STAMP)  ## ruff format + import sort
 	$(PY) -m ruff check --fix fleet_torchrl tests
 
+table: $(STAMP)  ## main job: train the learned policies (if missing) and compare all five -> results/table
+	$(PY) -m fleet_torchrl.table $(ARGS)
+
+train: $(STAMP)  ## train one policy, e.g. ARGS="agent=dqn state=all"
+	$(PY) -m fleet_torchrl.train $(ARGS)
+
+grid: $(STAMP)  ## DQN hyperparameter grid search (Hydra multirun, joblib) + summary -> results/grid
+	$(PY) -m fleet_torchrl.train -m +experiment=grid $(ARGS)
+	$(PY) -m fleet_torchrl.grid
+
 evaluate: $(STAMP)  ## evaluate a policy (SPEC §4); overrides in ARGS
 	$(PY) -m fleet_torchrl.evaluate $(ARGS)
 
@@ -39,8 +49,8 @@ bench: $(STAMP)  ## simulator and evaluation throughput (docs/BENCHMARKS.md)
 	$(PY) -m fleet_torchrl.bench $(ARGS)
 
 tensorboard: $(STAMP)  ## open TensorBoard on the training runs
-	$(VENV)/bin/tensorboard --logdir outputs --bind_all
+	$(VENV)/bin/tensorboard --logdir_spec outputs:outputs,multirun:multirun
 
-clean:  ## remove generated outputs (keeps .venv and results/)
+clean:  ## remove Hydra outputs and sweeps (keeps .venv and results/)
 	rm -rf outputs multirun/*/ .pytest_cache .ruff_cache
 	find . -name __pycache__ -type d -not -path './.venv/*' -exec rm -rf {} +

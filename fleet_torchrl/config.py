@@ -136,6 +136,7 @@ class TrainConfig:
     checkpoint_every: int = 5  # rounds between checkpoints
     out_dir: str | None = None  # best policy goes here; default results/policies/<run name>
     device: str = "cpu"
+    threads: int = 0  # torch CPU threads; 0 = torch's default
     tensorboard: bool = True
     progress: bool = True
 
@@ -154,6 +155,22 @@ class EvalConfig:
 
 
 @dataclass
+class TableConfig:
+    """``make table``: train what is missing, then evaluate all policies (SPEC §5 item 1)."""
+
+    out: str = "results/table"
+    policies_dir: str = "results/policies"
+    runs_dir: str = "outputs/table"  # Hydra run folders of the trainings (logs, checkpoints)
+    retrain: bool = False  # train again even when a saved policy exists
+    # extra overrides of each training run (the learned policies and their budgets)
+    train: dict[str, list[str]] = field(default_factory=lambda: {
+        "tabular": ["agent=tabular", "state=partial"],
+        "dqn_partial": ["agent=dqn", "state=partial"],
+        "dqn_all": ["agent=dqn", "state=all"],
+    })
+
+
+@dataclass
 class Config:
     site: SiteConfig = field(default_factory=SiteConfig)
     state: StateConfig = field(default_factory=StateConfig)
@@ -162,6 +179,7 @@ class Config:
     network: NetworkConfig = field(default_factory=NetworkConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
+    table: TableConfig = field(default_factory=TableConfig)
     seed: int = 0
     resume: bool = False
 
@@ -290,6 +308,7 @@ def validate_train(t: TrainConfig, path: str = "train") -> TrainConfig:
     check_range(f"{path}.eval_seed", t.eval_seed, 0, 2**32 - 1)
     check_range(f"{path}.patience", t.patience, 0, None)
     check_range(f"{path}.checkpoint_every", t.checkpoint_every, 1, None)
+    check_range(f"{path}.threads", t.threads, 0, 1024)
     validate_device(f"{path}.device", t.device)
     return t
 

@@ -28,6 +28,10 @@ register_configs()
 def train(cfg: Config, run_dir: str | Path) -> dict:
     from .training import Trainer
 
+    if cfg.train.threads:
+        import torch
+
+        torch.set_num_threads(cfg.train.threads)
     write_json(Path(run_dir) / "run_info.json", run_info(cfg, seed=cfg.seed))
     trainer = Trainer(cfg, run_dir)
     summary = trainer.run()

@@ -28,7 +28,9 @@ def run_name(cfg: Config) -> str:
 
 
 def default_policy_dir(cfg: Config) -> Path:
-    return Path(cfg.train.out_dir) if cfg.train.out_dir else Path("results/policies") / run_name(cfg)
+    if cfg.train.out_dir:
+        return Path(cfg.train.out_dir)
+    return Path("results/policies") / run_name(cfg)
 
 
 def save_policy(path: str | Path, policy: Policy, kind: str, n_obs: int,
@@ -56,7 +58,8 @@ def load_policy_file(path: str | Path, device: str | torch.device = "cpu") -> Po
     try:
         bundle = torch.load(path, map_location=device, weights_only=True)
     except Exception as e:  # truncated or foreign file
-        raise ValueError(f"{path} is not a readable policy file ({type(e).__name__}: {e})") from None
+        raise ValueError(
+            f"{path} is not a readable policy file ({type(e).__name__}: {e})") from None
     if not isinstance(bundle, dict) or bundle.get("format") != FORMAT:
         raise ValueError(f"{path} is not a fleet_torchrl policy file (format {FORMAT} expected)")
     kind = bundle["kind"]

@@ -1,0 +1,147 @@
+"""``make table``: the main comparison of SPEC §5 item 1 in one command.
+
+    python -m fleet_torchrl.table                       # defaults: 1000 sims x 10 000 ticks
+    python -m fleet_torchrl.table eval.n_sims=200 table.retrain=true
+
+1. For each learned policy (``table.train``: tabular, DQN on ``partial``, DQN on ``all``), reuse
+   ``results/policies/<name>/policy.pt`` if it exists, else train it in a subprocess
+   (``python -m fleet_torchrl.train``) whose Hydra run directory is
+   ``outputs/table/train_<name>``; an interrupted ``make table`` resumes those runs from their
+   checkpoints.
+2. Evaluate the rule, the heuristic and the learned policies with the protocol of SPEC §4 and
+   common random numbers (``eval.*``, same seed for all: every comparison is paired).
+3. Write ``results/table/``: ``table.md``, ``table.csv``, ``table.json`` (rows with ``policy``,
+   ``trips_mean``, ``trips_std``, ``queue_mean``, ``queue_std``, ``failure_rate``, ``gain_pct``,
+   ``gain_ci95`` against the rule, and the same against the heuristic), ``boxplot.png`` (each
+   simulation's trips as % over the rule's mean) and one result JSON + CSV per policy.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import hydra
+from omegaconf import DictConfig
+
+from .config import Config, ConfigError, register_configs, to_config
+from .evaluation import evaluate_policy, format_table, gain_over, save_result
+from .policies import HeuristicPolicy, RulePolicy
+from .runinfo import run_info, write_json, write_text
+
+register_configs()
+
+ROW_KEYS = ("policy", "trips_mean", "trips_std", "queue_mean", "queue_std", "failure_rate",
+            "gain_pct", "gain_ci95", "gain_vs_heuristic_pct", "gain_vs_heuristic_ci95")
+
+
+def ensure_policy(name: str, overrides: list[str], cfg: Config) -> tuple[Path, float | None]:
+    """Path of the saved policy ``name``, training it first if needed; returns (path, seconds)."""
+    out_dir = Path(cfg.table.policies_dir) / name
+    policy = out_dir / "policy.pt"
+    summary = out_dir / "train_summary.json"
+    if policy.exists() and summary.exists() and not cfg.table.retrain:
+        print(f"[table] reusing {policy}")
+        return policy, None
+    run_dir = Path(cfg.table.runs_dir) / f"train_{name}"
+    resume = (run_dir / "checkpoint.ckpt").exists() and not cfg.table.retrain
+    cmd = [sys.executable, "-m", "fleet_torchrl.train", *overrides,
+           f"train.out_dir={out_dir}", f"hydra.run.dir={run_dir}", f"resume={str(resume).lower()}",
+           f"train.device={cfg.train.device}", f"seed={cfg.seed}"]
+    print(f"[table] training {name}: {' '.join(cmd[2:])}", flush=True)
+    t0 = time.perf_counter()
+    subprocess.run(cmd, check=True)
+    return policy, time.perf_counter() - t0
+
+
+def build_rows(results: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
+    rule, heur = results["rule"], results["heuristic"]
+    rows = []
+    for name, res in results.items():
+        g, h = gain_over(res, rule), gain_over(res, heur)
+        rows.append({"policy": name, **{k: res[k] for k in ROW_KEYS[1:6]},
+                     "gain_pct": g["gain_pct"], "gain_ci95": g["gain_ci95"],
+                     "gain_vs_heuristic_pct": h["gain_pct"],
+                     "gain_vs_heuristic_ci95": h["gain_ci95"]})
+    return rows
+
+
+def rows_csv(rows: list[dict[str, Any]]) -> str:
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=ROW_KEYS, lineterminator="\n")
+    w.writeheader()
+    w.writerows(rows)
+    return buf.getvalue()
+
+
+def rows_markdown(rows: list[dict[str, Any]], cfg: Config, extra: str = "") -> str:
+    e = cfg.eval
+    lines = [f"# Main comparison ({e.n_sims} simulations x {e.ticks} ticks, site "
+             f"'{cfg.site.name}', seed {e.seed})", "", format_table(rows), "",
+             "Gain: mean paired difference in trips over the rule's mean, in %, with the "
+             "half-width of its 95% confidence interval.", "",
+             "| policy | gain % vs heuristic | ± 95% CI |", "|---|---:|---:|"]
+    lines += [f"| {r['policy']} | {r['gain_vs_heuristic_pct']:+.2f} | "
+              f"{r['gain_vs_heuristic_ci95']:.2f} |" for r in rows]
+    return "\n".join(lines) + "\n" + extra
+
+
+def run(cfg: Config) -> list[dict[str, Any]]:
+    from .agents import load_policy_file
+    from .plotting import plot_gain_boxplot, save_figure
+
+    out = Path(cfg.table.out)
+    policies: dict[str, Any] = {"rule": RulePolicy(), "heuristic": HeuristicPolicy()}
+    train_time: dict[str, float | None] = {}
+    for name, overrides in cfg.table.train.items():
+        path, secs = ensure_policy(name, list(overrides), cfg)
+        train_time[name] = secs
+        policies[name] = load_policy_file(path, cfg.eval.device)
+    e = cfg.eval
+    results: dict[str, dict[str, Any]] = {}
+    for name, pol in policies.items():
+        res = evaluate_policy(pol, cfg.site, e.n_sims, e.ticks, e.seed, e.device, e.chunk,
+                              progress=e.progress, name=name)
+        res["meta"] = run_info(cfg, seed=e.seed)
+        save_result(res, out / f"{name}.json")
+        results[name] = res
+        print(f"[table] {name}: {res['trips_mean']:.2f} trips, {res['queue_mean']:.2f} queue "
+              f"ticks, failure rate {res['failure_rate']:.3f} ({res['wall_time_s']:.1f} s)",
+              flush=True)
+    rows = build_rows(results)
+    gains = {name: gain_over(res, results["rule"])["per_sim_gain_pct"]
+             for name, res in results.items()}
+    fig = plot_gain_boxplot(gains, f"trips per simulation vs rule mean ({e.n_sims} x {e.ticks})")
+    save_figure(fig, out / "boxplot.png")
+    timing = "\n".join(f"- training {k}: "
+                       + (f"{v:.0f} s" if v is not None else "reused saved policy")
+                       for k, v in train_time.items())
+    write_text(out / "table.md", rows_markdown(rows, cfg, "\n" + timing + "\n"))
+    write_text(out / "table.csv", rows_csv(rows))
+    write_json(out / "table.json", rows)
+    write_json(out / "run_info.json", {**run_info(cfg, seed=e.seed), "train_time_s": train_time})
+    print(format_table(rows))
+    print(f"[table] wrote {out}/table.md, table.csv, table.json, boxplot.png")
+    return rows
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="config")
+def main(dcfg: DictConfig) -> None:
+    try:
+        run(to_config(dcfg))
+    except (ConfigError, FileNotFoundError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)
+    except subprocess.CalledProcessError as e:
+        print(f"error: training failed ({' '.join(e.cmd[2:4])}...); rerun `make table` to "
+              "resume it from its checkpoint", file=sys.stderr)
+        sys.exit(1)
+
+
+if __name__ == "__main__":
+    main()
