@@ -10,8 +10,9 @@ Reward: the mean cost of the ticks of the step, a tick costing ``-p_f`` if the s
 it, else ``-p_q`` if it was a queue tick, else 0.
 
 Every site's episode ``k`` uses site index ``k * B + b`` in the common random numbers of
-:mod:`fleet_torchrl.rng`, so the whole stream of initial states and closures is a pure function
-of the seed (:meth:`set_seed`) and the batch size. After a reset a site runs until its first
+:mod:`fleet_torchrl.rng` under ``rng.training_seed(seed)``, so the whole stream of initial
+states and closures is a pure function of the seed (:meth:`set_seed`) and the batch size, and
+never coincides with the sites of the evaluation protocol (which uses its seed directly). After a reset a site runs until its first
 decision; in the rare case that it fails before any vehicle reaches ``D`` (only possible with a
 tiny ``xi``), it is redrawn with its next episode index.
 
@@ -26,6 +27,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
+from . import rng
 from .config import MDPConfig, SiteConfig
 from .encodings import get_encoding
 from .sim import Site
@@ -64,7 +66,7 @@ class FleetChargingEnv(EnvBase):
             truncated=Categorical(2, shape=(b, 1), dtype=torch.bool, device=dev),
             shape=(b,), device=dev,
         )
-        self._seed = int(seed)
+        self._seed = rng.training_seed(int(seed))
         self._episodes = torch.zeros(b, dtype=torch.int64, device=dev)
         self._arange = torch.arange(b, device=dev)
         self._site_idx = torch.zeros(b, dtype=torch.int64, device=dev)
@@ -75,7 +77,7 @@ class FleetChargingEnv(EnvBase):
 
     # ------------------------------------------------------------------ TorchRL hooks
     def _set_seed(self, seed: int | None) -> None:
-        self._seed = int(seed) if seed is not None else 0
+        self._seed = rng.training_seed(int(seed) if seed is not None else 0)
         self._episodes.zero_()
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:

@@ -36,15 +36,14 @@ Z95 = 1.959963984540054
 @torch.inference_mode()
 def simulate(policy: Policy, site_cfg: SiteConfig, n_sims: int = 1000, ticks: int = 10_000,
              seed: int = 0, device: str | torch.device = "cpu", chunk: int = 256,
-             progress: bool = False, desc: str | None = None, site_offset: int = 0
-             ) -> dict[str, Tensor]:
+             progress: bool = False, desc: str | None = None) -> dict[str, Tensor]:
     """Per-simulation records (CPU tensors): ``trips``, ``queue``, ``failed``,
     ``ticks_survived``."""
     device = torch.device(device)
     site = Site(site_cfg, device)
     encode = get_encoding(policy.encoding)
     policy = policy.to(device).eval()
-    idx = torch.arange(n_sims, device=device, dtype=torch.int64) + site_offset
+    idx = torch.arange(n_sims, device=device, dtype=torch.int64)
     s, needs = site.init_state(seed, idx)
     site.decide(s, needs, policy(encode(site, s)))
     trips = torch.zeros(n_sims, dtype=torch.int64, device=device)
@@ -122,12 +121,13 @@ def gain_over(result: dict[str, Any], baseline: dict[str, Any]) -> dict[str, Any
     difference of means); ``gain_ci95`` is the half-width of its 95% confidence interval
     from the paired differences (normal approximation). ``per_sim_gain_pct`` is each
     simulation's trips as % over the baseline's mean (the box-plot quantity of SPEC §5).
-    Both results must come from the same seed, number of simulations and ticks.
+    Both results must come from the same seed, number of simulations, ticks and site.
     """
-    for key in ("seed", "n_sims", "ticks"):
+    for key in ("seed", "n_sims", "ticks", "site"):
         if result.get(key) != baseline.get(key):
+            detail = "" if key == "site" else f" ({result.get(key)} vs {baseline.get(key)})"
             raise ValueError(f"cannot pair {result.get('policy')} with {baseline.get('policy')}: "
-                             f"{key} differs ({result.get(key)} vs {baseline.get(key)})")
+                             f"{key} differs{detail}")
     a = torch.tensor(result["records"]["trips"], dtype=torch.float64)
     b = torch.tensor(baseline["records"]["trips"], dtype=torch.float64)
     base_mean = float(b.mean())

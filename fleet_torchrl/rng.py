@@ -23,6 +23,13 @@ _C2 = 0x735A2D97
 STREAM_CLOSURE = 1
 STREAM_INIT_POS = 2
 STREAM_INIT_SOC = 3
+STREAM_TRAINING = 4  # derives the environment's seed: training never replays evaluation sites
+
+
+def training_seed(seed: int) -> int:
+    """The seed the environment uses for training seed ``seed``: a 32-bit hash of it, so the
+    training sites are not the evaluation protocol's sites for any small evaluation seed."""
+    return int(hash_ints(seed, STREAM_TRAINING))
 
 
 def _mix(x: Tensor) -> Tensor:

@@ -6,6 +6,9 @@ so ``max_episodes / num_sites`` rounds in all. Starting every round from fresh r
 round boundary a clean checkpoint: the environment's whole state there is its seed and episode
 counters, and a resumed run continues exactly where an uninterrupted one would.
 
+Steps truncated by the tick budget end between two decisions, so their next observation is
+not a decision state; neither agent learns from them (one transition per episode).
+
 * Tabular: online Q-learning, one batched update per environment step, epsilon decayed
   exponentially per episode (round) to ``eps_end``.
 * DQN: a TorchRL ``Collector`` (``reset_at_each_iter=True``) collects
@@ -177,7 +180,10 @@ class Trainer:
             nxt = td["next"]
             reward = nxt["reward"].squeeze(-1)
             term, done = nxt["terminated"].squeeze(-1), nxt["done"].squeeze(-1)
-            td_err += learner.update(obs, action, reward, nxt["observation"], term, live)
+            # a truncated step ends between decisions: its next observation is no decision
+            # state, so it is not learned from (one transition per episode)
+            learn = live & ~nxt["truncated"].squeeze(-1)
+            td_err += learner.update(obs, action, reward, nxt["observation"], term, learn)
             n_upd += 1
             frames += int(live.sum())
             ep_reward += reward * live

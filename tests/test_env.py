@@ -91,6 +91,21 @@ def test_partial_reset_only_touches_masked_sites():
     assert (out["queue_ticks"][mask] == 0).all()
 
 
+def test_training_sites_are_not_the_evaluation_sites():
+    from fleet_torchrl.sim import Site
+
+    from fleet_torchrl.rng import training_seed
+
+    env = FleetChargingEnv(num_sites=16, seed=0)
+    assert env._seed == training_seed(0) != 0
+    env.set_seed(3)
+    assert env._seed == training_seed(3)
+    site = Site(SiteConfig())
+    train_sites, _ = site.init_state(env._seed, torch.arange(16))
+    eval_sites, _ = site.init_state(0, torch.arange(16))  # evaluation sims 0..15, seed 0
+    assert not torch.equal(train_sites.soc, eval_sites.soc)
+
+
 def test_same_seed_same_rollout_and_new_seed_differs():
     def roll(seed):
         env = FleetChargingEnv(num_sites=8)

@@ -105,6 +105,9 @@ def test_result_files_and_pairwise_comparison(tmp_path):
     bad = dict(rule, seed=1)
     with pytest.raises(ValueError, match="seed differs"):
         gain_over(heur, bad)
+    other_site = evaluate_policy(RulePolicy(), SiteConfig(p_c=0.6), 40, 2000, seed=0)
+    with pytest.raises(ValueError, match="site differs"):
+        gain_over(heur, other_site)
     with pytest.raises(FileNotFoundError):
         load_result(tmp_path / "missing.json")
     (tmp_path / "junk.json").write_text("{not json")

@@ -8,11 +8,10 @@ import json
 import pytest
 import yaml
 from hydra import compose, initialize_config_dir
+from test_config import CONF
 
 from fleet_torchrl import grid
 from fleet_torchrl.config import register_configs, to_config
-
-from test_config import CONF
 
 register_configs()
 

@@ -94,12 +94,17 @@ class DQNLearner(nn.Module):
         return DQNPolicy(self.qnet, self.encoding)
 
     def observe(self, batch: TensorDictBase) -> None:
-        """Store a collected batch and advance the epsilon schedule by its frames."""
+        """Store a collected batch and advance the epsilon schedule by its frames.
+
+        Transitions truncated by the tick budget are not stored: their next observation is
+        not a decision state (see :mod:`fleet_torchrl.training`).
+        """
         flat = batch.reshape(-1)
+        self.egreedy.step(flat.numel())
+        flat = flat[~flat["next", "truncated"].reshape(-1)]
         self.buffer.extend(flat.select("observation", "action", ("next", "observation"),
                                        ("next", "reward"), ("next", "done"),
                                        ("next", "terminated"), ("next", "truncated")))
-        self.egreedy.step(flat.numel())
 
     def update(self, steps: int) -> float:
         """``steps`` gradient steps; returns the mean loss (nan if the buffer is too small)."""

@@ -22,7 +22,8 @@ N_STATES = N_SOC_BINS * N_SOC_BINS * 2
 
 def state_index(obs: Tensor) -> Tensor:
     """Discretise ``partial`` observations ``[..., 3]`` (normalised) to ``[0, 200)``."""
-    soc_bins = (obs[..., :2] * N_SOC_BINS).long().clamp_(0, N_SOC_BINS - 1)
+    # + 1e-4: soc 40 is 0.4 after float32 scaling, which times 10 is 3.9999998, not 4
+    soc_bins = (obs[..., :2] * N_SOC_BINS + 1e-4).long().clamp_(0, N_SOC_BINS - 1)
     busy = (obs[..., 2] > 0).long()
     return (soc_bins[..., 0] * N_SOC_BINS + soc_bins[..., 1]) * 2 + busy
 
