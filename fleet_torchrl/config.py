@@ -119,7 +119,7 @@ class NetworkConfig:
     lr: float = 1e-3  # Adam learning rate
     weight_decay: float = 0.01  # Adam L2 regularisation
     batch_size: int = 64
-    buffer_size: int = 10_000
+    buffer_size: int = 50_000
     target_update: int = 500  # gradient steps between hard target-network copies
 
 
@@ -128,11 +128,11 @@ class TrainConfig:
     """Training schedule, periodic evaluation, early stopping, checkpoints, logging."""
 
     max_episodes: int = 10_000  # N_E: training episodes in total (all sites)
-    eval_every: int = 5  # rounds between evaluations of the greedy policy
+    eval_every: int = 2  # rounds between evaluations of the greedy policy
     eval_sims: int = 200  # evaluation sites (fixed common random numbers)
     eval_ticks: int = 3000
     eval_seed: int = 1_000_003  # distinct from the final evaluation's seed
-    patience: int = 8  # evaluations without improvement before stopping (0 = never stop)
+    patience: int = 15  # evaluations without improvement before stopping (0 = never stop)
     checkpoint_every: int = 5  # rounds between checkpoints
     out_dir: str | None = None  # best policy goes here; default results/policies/<run name>
     device: str = "cpu"
@@ -164,9 +164,11 @@ class TableConfig:
     retrain: bool = False  # train again even when a saved policy exists
     # extra overrides of each training run (the learned policies and their budgets)
     train: dict[str, list[str]] = field(default_factory=lambda: {
-        "tabular": ["agent=tabular", "state=partial"],
-        "dqn_partial": ["agent=dqn", "state=partial"],
-        "dqn_all": ["agent=dqn", "state=all"],
+        "tabular": ["agent=tabular", "state=partial", "train.max_episodes=7000"],
+        "dqn_partial": ["agent=dqn", "state=partial", "agent.double_dqn=true",
+                        "train.max_episodes=1600"],
+        "dqn_all": ["agent=dqn", "state=all", "agent.double_dqn=true",
+                    "train.max_episodes=1440"],
     })
 
 
