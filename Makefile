@@ -7,7 +7,9 @@ STAMP  := $(VENV)/.installed
 ARGS   ?=
 PYTEST_ARGS ?=
 
-.PHONY: help install test test-fast lint format table train evaluate grid bench tensorboard clean
+.PHONY: help install test test-fast lint format table train evaluate grid bench tensorboard clean \
+        policies policy-maps sweep-pc sweep-tc sweep-nv sweeps experiments report
+TIMED  := $(PY) -m fleet_torchrl.timing
 
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-14s %s\n", $$1, $$2}'
@@ -33,13 +35,38 @@ format: $(STAMP)  ## ruff format + import sort
 	$(PY) -m ruff check --fix fleet_torchrl tests
 
 table: $(STAMP)  ## main job: train the learned policies (if missing) and compare all five -> results/table
-	$(PY) -m fleet_torchrl.table $(ARGS)
+	$(TIMED) table -- $(PY) -m fleet_torchrl.table $(ARGS)
+
+policies: $(STAMP)  ## train the learned policies that are missing (no evaluation)
+	$(PY) -m fleet_torchrl.table table.evaluate=false
+
+policy-maps: policies  ## action maps of rule, heuristic, tabular, DQN-partial -> results/policy_maps
+	$(TIMED) policy-maps -- $(PY) -m fleet_torchrl.policy_maps $(ARGS)
+
+sweep-pc: policies  ## generalisation sweep over p_c -> results/sweeps/pc.{csv,json,png}
+	$(TIMED) sweep-pc -- $(PY) -m fleet_torchrl.sweeps -m +experiment=sweep_pc $(ARGS)
+	$(PY) -m fleet_torchrl.sweeps_summary pc --expect p_c=0.0 p_c=0.2 p_c=0.4 p_c=0.6 p_c=0.8 p_c=0.9
+
+sweep-tc: policies  ## generalisation sweep over T_C -> results/sweeps/tc.{csv,json,png}
+	$(TIMED) sweep-tc -- $(PY) -m fleet_torchrl.sweeps -m +experiment=sweep_tc $(ARGS)
+	$(PY) -m fleet_torchrl.sweeps_summary tc --expect t_c=10 t_c=20 t_c=30 t_c=40 t_c=50
+
+sweep-nv: policies  ## generalisation sweep over N_V -> results/sweeps/nv.{csv,json,png}
+	$(TIMED) sweep-nv -- $(PY) -m fleet_torchrl.sweeps -m +experiment=sweep_nv $(ARGS)
+	$(PY) -m fleet_torchrl.sweeps_summary nv --expect n_vehicles=1 n_vehicles=2 n_vehicles=3 n_vehicles=4 n_vehicles=5
+
+sweeps: sweep-pc sweep-tc sweep-nv  ## all three generalisation sweeps
+
+experiments: table policy-maps sweeps grid report  ## every experiment of SPEC §5, then the report
+
+report: $(STAMP)  ## assemble docs/report.md from result files (no retraining)
+	$(PY) -m fleet_torchrl.report
 
 train: $(STAMP)  ## train one policy, e.g. ARGS="agent=dqn state=all"
 	$(PY) -m fleet_torchrl.train $(ARGS)
 
 grid: $(STAMP)  ## DQN hyperparameter grid search (Hydra multirun, joblib) + summary -> results/grid
-	$(PY) -m fleet_torchrl.train -m +experiment=grid $(ARGS)
+	$(TIMED) grid -- $(PY) -m fleet_torchrl.train -m +experiment=grid $(ARGS)
 	$(PY) -m fleet_torchrl.grid
 
 evaluate: $(STAMP)  ## evaluate a policy (SPEC §4); overrides in ARGS

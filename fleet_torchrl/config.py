@@ -162,14 +162,40 @@ class TableConfig:
     policies_dir: str = "results/policies"
     runs_dir: str = "outputs/table"  # Hydra run folders of the trainings (logs, checkpoints)
     retrain: bool = False  # train again even when a saved policy exists
+    evaluate: bool = True  # false: only make sure the policies exist (make policies)
     # extra overrides of each training run (the learned policies and their budgets)
     train: dict[str, list[str]] = field(default_factory=lambda: {
-        "tabular": ["agent=tabular", "state=partial", "train.max_episodes=7000"],
+        "tabular": ["agent=tabular", "state=partial", "train.max_episodes=7000",
+                    "train.patience=0"],
         "dqn_partial": ["agent=dqn", "state=partial", "agent.double_dqn=true",
                         "train.max_episodes=1600"],
         "dqn_all": ["agent=dqn", "state=all", "agent.double_dqn=true",
                     "train.max_episodes=1440"],
     })
+
+
+@dataclass
+class SweepConfig:
+    """One point of a generalisation sweep (SPEC §5 item 3): all policies on a changed site."""
+
+    name: str = "pc"  # sweep name: results/sweeps/<name>.{csv,json,png}
+    param: str = "p_c"  # site field varied: p_c | t_c | n_vehicles
+    value: float = 0.8  # the point evaluated by this job
+    out: str = "results/sweeps"
+    policies: list[str] = field(default_factory=lambda: [
+        "rule", "heuristic", "tabular", "dqn_partial", "dqn_all"])
+
+
+SWEEP_PARAMS = ("p_c", "t_c", "n_vehicles")
+
+
+@dataclass
+class MapsConfig:
+    """Policy maps (SPEC §5 item 2) of saved policies on the ``partial`` state."""
+
+    out: str = "results/policy_maps"
+    policies: list[str] = field(default_factory=lambda: [
+        "rule", "heuristic", "tabular", "dqn_partial"])
 
 
 @dataclass
@@ -182,6 +208,8 @@ class Config:
     train: TrainConfig = field(default_factory=TrainConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     table: TableConfig = field(default_factory=TableConfig)
+    sweep: SweepConfig = field(default_factory=SweepConfig)
+    maps: MapsConfig = field(default_factory=MapsConfig)
     seed: int = 0
     resume: bool = False
 
@@ -332,6 +360,12 @@ def validate(cfg: Config) -> Config:
     check_range("eval.chunk", cfg.eval.chunk, 1, 1_000_000)
     validate_device("eval.device", cfg.eval.device)
     check_range("seed", cfg.seed, 0, 2**32 - 1)
+    check_choice("sweep.param", cfg.sweep.param, SWEEP_PARAMS)
+    known = ("rule", "heuristic", *cfg.table.train.keys())
+    for i, name in enumerate(cfg.sweep.policies):
+        check_choice(f"sweep.policies[{i}]", name, known)
+    for i, name in enumerate(cfg.maps.policies):
+        check_choice(f"maps.policies[{i}]", name, known)
     return cfg
 
 

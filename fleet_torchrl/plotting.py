@@ -70,3 +70,27 @@ def plot_gain_boxplot(gains: dict[str, list[float]], title: str):
     ax.set_title(title, fontsize=10)
     fig.tight_layout()
     return fig
+
+
+PARAM_LABELS = {"p_c": "closure probability p_c", "t_c": "charging ticks T_C",
+                "n_vehicles": "vehicles N_V"}
+
+
+def plot_sweep(rows: list[dict], param: str, title: str):
+    """Gain in trips over the rule (± 95% CI) per policy against the swept parameter."""
+    fig, ax = plt.subplots(figsize=(5.6, 3.6))
+    policies = list(dict.fromkeys(r["policy"] for r in rows))
+    for name in policies:
+        pts = sorted((r["value"], r["gain_pct"], r["gain_ci95"] or 0.0) for r in rows
+                     if r["policy"] == name and r["gain_pct"] is not None)
+        if not pts:
+            continue
+        x, y, ci = zip(*pts, strict=True)
+        ax.errorbar(x, y, yerr=ci, marker="o", ms=3.5, capsize=2.5, lw=1.2, label=name)
+    ax.axhline(0.0, color="grey", lw=0.8, ls="--")
+    ax.set_xlabel(PARAM_LABELS.get(param, param))
+    ax.set_ylabel("trips gain over rule (%)")
+    ax.set_title(title, fontsize=10)
+    ax.legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    return fig

@@ -102,6 +102,8 @@ def run(cfg: Config) -> list[dict[str, Any]]:
         path, secs = ensure_policy(name, list(overrides), cfg)
         train_time[name] = secs
         policies[name] = load_policy_file(path, cfg.eval.device)
+    if not cfg.table.evaluate:
+        return []
     e = cfg.eval
     results: dict[str, dict[str, Any]] = {}
     for name, pol in policies.items():

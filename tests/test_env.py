@@ -92,9 +92,8 @@ def test_partial_reset_only_touches_masked_sites():
 
 
 def test_training_sites_are_not_the_evaluation_sites():
-    from fleet_torchrl.sim import Site
-
     from fleet_torchrl.rng import training_seed
+    from fleet_torchrl.sim import Site
 
     env = FleetChargingEnv(num_sites=16, seed=0)
     assert env._seed == training_seed(0) != 0

@@ -1,0 +1,111 @@
+"""Generalisation sweeps (SPEC §5 item 3): policies trained on the default site, evaluated
+on changed sites.
+
+    make sweep-pc      # = python -m fleet_torchrl.sweeps -m +experiment=sweep_pc
+                       #   then python -m fleet_torchrl.sweeps_summary pc
+
+Each Hydra job evaluates every policy of ``sweep.policies`` at one point (``site.<param> =
+sweep.value``) with the evaluation protocol (``eval.n_sims`` x ``eval.ticks``, common random
+numbers: all policies of a point see the same sites) and writes
+``results/sweeps/<name>/<param>=<value>.json`` atomically. A point whose file exists is
+skipped, so rerunning a sweep only runs what is missing; a point that fails writes an
+``.error`` file beside it and does not stop the other points. The saved policies must exist
+(``make policies`` trains what is missing); a job never trains.
+"""
+
+from __future__ import annotations
+
+import sys
+import traceback
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import hydra
+from omegaconf import DictConfig
+
+from .config import Config, ConfigError, register_configs, to_config, validate_site
+from .evaluation import evaluate_policy, gain_over
+from .runinfo import run_info, write_json, write_text
+
+register_configs()
+
+POINT_FIELDS = ("param", "value", "policy", "trips_mean", "trips_std", "queue_mean",
+                "failure_rate", "gain_pct", "gain_ci95")
+
+
+def point_value(param: str, value: float) -> float | int:
+    return int(round(value)) if param in ("t_c", "n_vehicles") else float(value)
+
+
+def point_path(cfg: Config) -> Path:
+    v = point_value(cfg.sweep.param, cfg.sweep.value)
+    return Path(cfg.sweep.out) / cfg.sweep.name / f"{cfg.sweep.param}={v}.json"
+
+
+def load_policies(cfg: Config, names: list[str]) -> dict[str, Any]:
+    """Baselines by name, learned policies from ``table.policies_dir/<name>``."""
+    from .agents import load_policy_file
+    from .policies import HeuristicPolicy, RulePolicy
+
+    out: dict[str, Any] = {}
+    for name in names:
+        if name == "rule":
+            out[name] = RulePolicy()
+        elif name == "heuristic":
+            out[name] = HeuristicPolicy()
+        else:
+            out[name] = load_policy_file(Path(cfg.table.policies_dir) / name, cfg.eval.device)
+            out[name].name = name
+    return out
+
+
+def run_point(cfg: Config) -> list[dict[str, Any]] | None:
+    """Evaluate all policies at this job's point; returns the rows (None if already done)."""
+    path = point_path(cfg)
+    if path.exists():
+        print(f"[sweep] {path} exists, skipping")
+        return None
+    param = cfg.sweep.param
+    value = point_value(param, cfg.sweep.value)
+    site = validate_site(replace(cfg.site, **{param: value}, name=f"{param}={value}"))
+    e = cfg.eval
+    results = {name: evaluate_policy(pol, site, e.n_sims, e.ticks, e.seed, e.device, e.chunk,
+                                     progress=e.progress, name=name)
+               for name, pol in load_policies(cfg, cfg.sweep.policies).items()}
+    rule = results.get("rule")
+    rows = []
+    for name, res in results.items():
+        g = gain_over(res, rule) if rule is not None else {"gain_pct": None, "gain_ci95": None}
+        rows.append({"param": param, "value": value, "policy": name,
+                     **{k: res[k] for k in ("trips_mean", "trips_std", "queue_mean",
+                                            "failure_rate")},
+                     "gain_pct": g["gain_pct"], "gain_ci95": g["gain_ci95"]})
+    write_json(path, {"rows": rows, "site": site, "meta": run_info(cfg, seed=e.seed)})
+    err = path.with_suffix(".error")
+    if err.exists():
+        err.unlink()
+    for r in rows:
+        print(f"[sweep] {param}={value} {r['policy']}: {r['trips_mean']:.1f} trips, "
+              f"gain {r['gain_pct']:+.2f} %" if r["gain_pct"] is not None else "")
+    return rows
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="config")
+def main(dcfg: DictConfig) -> None:
+    try:
+        cfg = to_config(dcfg)
+    except ConfigError as e:
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)
+    try:
+        run_point(cfg)
+    except Exception as e:  # keep the other points of the multirun going
+        path = point_path(cfg)
+        write_text(path.with_suffix(".error"), traceback.format_exc())
+        print(f"error: point {path.stem} failed ({type(e).__name__}: {e}); see "
+              f"{path.with_suffix('.error')}", file=sys.stderr)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,42 @@
+"""Time one step of ``make experiments``: ``python -m fleet_torchrl.timing STEP -- CMD ...``.
+
+Runs CMD, then records its wall time, exit code and the machine in ``results/timings.json``
+(atomically; other steps' entries are kept) for the report. Exits with CMD's exit code.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import subprocess
+import sys
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+
+from .runinfo import read_json, write_json
+
+TIMINGS = Path("results/timings.json")
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if len(argv) < 3 or argv[1] != "--":
+        print("usage: python -m fleet_torchrl.timing STEP -- CMD ...", file=sys.stderr)
+        return 2
+    step, cmd = argv[0], argv[2:]
+    t0 = time.perf_counter()
+    rc = subprocess.run(cmd).returncode
+    wall = time.perf_counter() - t0
+    timings = read_json(TIMINGS) if TIMINGS.exists() else {}
+    timings[step] = {"wall_s": round(wall, 1), "exit_code": rc,
+                     "finished": datetime.now(UTC).isoformat(timespec="seconds"),
+                     "machine": f"{platform.machine()}, {os.cpu_count()} CPUs, "
+                                f"{platform.platform()}"}
+    write_json(TIMINGS, timings)
+    print(f"[timing] {step}: {wall:.0f} s (exit {rc})")
+    return rc
+
+
+if __name__ == "__main__":
+    sys.exit(main())
