@@ -12,8 +12,8 @@ it, else ``-p_q`` if it was a queue tick, else 0.
 Every site's episode ``k`` uses site index ``k * B + b`` in the common random numbers of
 :mod:`fleet_torchrl.rng` under ``rng.training_seed(seed)``, so the whole stream of initial
 states and closures is a pure function of the seed (:meth:`set_seed`) and the batch size, and
-never coincides with the sites of the evaluation protocol (which uses its seed directly). After a reset a site runs until its first
-decision; in the rare case that it fails before any vehicle reaches ``D`` (only possible with a
+never coincides with the sites of the evaluation protocol (which uses its seed directly).
+After a reset a site runs until its first decision; in the rare case that it fails before any vehicle reaches ``D`` (only possible with a
 tiny ``xi``), it is redrawn with its next episode index.
 
 Besides ``observation`` the environment reports per-episode counters ``trips``,
