@@ -13,8 +13,9 @@ Every site's episode ``k`` uses site index ``k * B + b`` in the common random nu
 :mod:`fleet_torchrl.rng` under ``rng.training_seed(seed)``, so the whole stream of initial
 states and closures is a pure function of the seed (:meth:`set_seed`) and the batch size, and
 never coincides with the sites of the evaluation protocol (which uses its seed directly).
-After a reset a site runs until its first decision; in the rare case that it fails before any vehicle reaches ``D`` (only possible with a
-tiny ``xi``), it is redrawn with its next episode index.
+After a reset a site runs until its first decision; in the rare case that it fails before
+any vehicle reaches ``D`` (only possible with a tiny ``xi``), it is redrawn with its next
+episode index.
 
 Besides ``observation`` the environment reports per-episode counters ``trips``,
 ``queue_ticks`` and ``ticks`` (cumulative since the site's reset) for logging.
