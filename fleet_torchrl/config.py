@@ -166,11 +166,11 @@ class TableConfig:
     # extra overrides of each training run (the learned policies and their budgets)
     train: dict[str, list[str]] = field(default_factory=lambda: {
         "tabular": ["agent=tabular", "state=partial", "train.max_episodes=7000",
-                    "train.patience=0"],
+                    "train.patience=40"],
         "dqn_partial": ["agent=dqn", "state=partial", "agent.double_dqn=true",
-                        "train.max_episodes=1600"],
+                        "train.max_episodes=1600", "train.patience=40"],
         "dqn_all": ["agent=dqn", "state=all", "agent.double_dqn=true",
-                    "train.max_episodes=1440"],
+                    "train.max_episodes=1440", "train.patience=40"],
     })
 
 
