@@ -9,14 +9,14 @@ config, seed, git commit, package versions) plus a per-simulation CSV beside it.
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from .config import Config, ConfigError, register_configs, to_config
+from .cli import user_errors
+from .config import Config, register_configs, to_config
 from .evaluation import evaluate_policy, format_table, save_result
 from .policies import Policy, build_baseline
 from .runinfo import run_info
@@ -51,13 +51,10 @@ def run(cfg: Config, out: str | Path | None) -> dict:
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="config")
 def main(dcfg: DictConfig) -> None:
-    try:
+    with user_errors():
         cfg = to_config(dcfg)
         out = cfg.eval.out or Path(HydraConfig.get().runtime.output_dir) / "eval.json"
         run(cfg, out)
-    except (ConfigError, FileNotFoundError, ValueError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        sys.exit(2)
 
 
 if __name__ == "__main__":

@@ -8,13 +8,13 @@ and busy for the rule, the heuristic and the tabular agent (which only sees TC >
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import hydra
 from omegaconf import DictConfig
 
-from .config import Config, ConfigError, register_configs, to_config
+from .cli import user_errors
+from .config import Config, register_configs, to_config
 from .plotting import TC_DQN, TC_TABULAR, plot_policy_map, save_figure
 from .sweeps import load_policies
 
@@ -35,11 +35,8 @@ def run(cfg: Config) -> list[Path]:
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="config")
 def main(dcfg: DictConfig) -> None:
-    try:
+    with user_errors():
         run(to_config(dcfg))
-    except (ConfigError, FileNotFoundError, ValueError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        sys.exit(2)
 
 
 if __name__ == "__main__":

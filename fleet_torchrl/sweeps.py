@@ -24,7 +24,8 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig
 
-from .config import Config, ConfigError, register_configs, to_config, validate_site
+from .cli import user_errors
+from .config import Config, register_configs, to_config, validate_site
 from .evaluation import evaluate_policy, gain_over
 from .runinfo import run_info, write_json, write_text
 
@@ -93,11 +94,8 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="config")
 def main(dcfg: DictConfig) -> None:
-    try:
+    with user_errors():
         cfg = to_config(dcfg)
-    except ConfigError as e:
-        print(f"error: {e}", file=sys.stderr)
-        sys.exit(2)
     try:
         run_point(cfg)
     except Exception as e:  # keep the other points of the multirun going

@@ -29,7 +29,8 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig
 
-from .config import Config, ConfigError, register_configs, to_config
+from .cli import user_errors
+from .config import Config, register_configs, to_config
 from .evaluation import evaluate_policy, format_table, gain_over, save_result
 from .policies import HeuristicPolicy, RulePolicy
 from .runinfo import run_info, write_json, write_text
@@ -135,10 +136,8 @@ def run(cfg: Config) -> list[dict[str, Any]]:
 @hydra.main(version_base="1.3", config_path="../conf", config_name="config")
 def main(dcfg: DictConfig) -> None:
     try:
-        run(to_config(dcfg))
-    except (ConfigError, FileNotFoundError, ValueError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        sys.exit(2)
+        with user_errors():
+            run(to_config(dcfg))
     except subprocess.CalledProcessError as e:
         print(f"error: training failed ({' '.join(e.cmd[2:4])}...); rerun `make table` to "
               "resume it from its checkpoint", file=sys.stderr)

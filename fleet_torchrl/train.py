@@ -12,14 +12,14 @@ and checkpoints to ``<run dir>/checkpoint.ckpt``. A killed run continues with
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from .config import Config, ConfigError, register_configs, to_config
+from .cli import user_errors
+from .config import Config, register_configs, to_config
 from .runinfo import run_info, write_json
 
 register_configs()
@@ -45,12 +45,9 @@ def train(cfg: Config, run_dir: str | Path) -> dict:
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="config")
 def main(dcfg: DictConfig) -> float:
-    try:
+    with user_errors():
         cfg = to_config(dcfg)
         summary = train(cfg, HydraConfig.get().runtime.output_dir)
-    except (ConfigError, FileNotFoundError, ValueError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        sys.exit(2)
     return (summary["best"] or {}).get("trips", float("nan"))
 
 
