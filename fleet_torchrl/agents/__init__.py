@@ -53,8 +53,8 @@ def load_policy_file(path: str | Path, device: str | torch.device = "cpu") -> Po
     if path.is_dir():
         path = path / POLICY_FILE
     if not path.is_file():
-        raise FileNotFoundError(f"no saved policy at {path}; train one first, e.g. "
-                                "`python -m fleet_torchrl.train agent=tabular`")
+        raise FileNotFoundError(f"no saved policy at {path}; train it first with `make policies` "
+                                "or `make train ARGS=\"agent=... state=...\"`")
     try:
         bundle = torch.load(path, map_location=device, weights_only=True)
     except Exception as e:  # truncated or foreign file
