@@ -37,7 +37,7 @@ def test_every_experiment_config_composes(name):
 
 
 def test_cluster_launcher_configs_are_documented():
-    for name, base in (("slurm", "submitit_slurm"), ("ray", "ray")):
+    for name, base in (("slurm", "submitit_slurm"), ("ray_cluster", "ray")):
         text = (CONF / "hydra" / "launcher" / f"{name}.yaml").read_text()
         assert text.startswith("#") and f"hydra/launcher={name}" in text
         assert yaml.safe_load(text)["defaults"] == [base]
