@@ -31,17 +31,17 @@ test-fast: $(STAMP)  ## run the tests not marked slow
 lint: $(STAMP)  ## ruff
 	$(PY) -m ruff check fleet_torchrl tests
 
-format: $(STAMP)  ## ruff format + import sort
+format: $(STAMP)  ## apply ruff's automatic lint fixes (import order, modern syntax)
 	$(PY) -m ruff check --fix fleet_torchrl tests
 
 table: $(STAMP)  ## main job: train the learned policies (if missing) and compare all five -> results/table
 	$(TIMED) table -- $(PY) -m fleet_torchrl.table $(ARGS)
 
 policies: $(STAMP)  ## train the learned policies that are missing (no evaluation)
-	$(PY) -m fleet_torchrl.table table.evaluate=false
+	$(PY) -m fleet_torchrl.table table.evaluate=false $(ARGS)
 
 policy-maps: policies  ## action maps of rule, heuristic, tabular, DQN-partial -> results/policy_maps
-	$(TIMED) policy-maps -- $(PY) -m fleet_torchrl.policy_maps $(ARGS)
+	$(TIMED) policy-maps -- $(PY) -m fleet_torchrl.policy_maps +experiment=policy_maps $(ARGS)
 
 sweep-pc: policies  ## generalisation sweep over p_c -> results/sweeps/pc.{csv,json,png}
 	$(TIMED) sweep-pc -- $(PY) -m fleet_torchrl.sweeps -m +experiment=sweep_pc $(ARGS)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from .cli import user_errors
 from .evaluation import compare
 
 
@@ -19,11 +20,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("result")
     p.add_argument("baseline")
     a = p.parse_args(argv)
-    try:
+    with user_errors():
         g = compare(a.result, a.baseline)
-    except (FileNotFoundError, ValueError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
     print(f"{g['policy']} vs {g['baseline']}: {g['gain_pct']:+.2f} % trips "
           f"(95% CI ± {g['gain_ci95']:.2f})")
     return 0

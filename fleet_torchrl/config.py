@@ -98,8 +98,8 @@ class DQNAgentConfig(AgentConfig):
     """Deep Q-learning on TorchRL (SPEC §3); the network is the ``network`` group."""
 
     name: str = "dqn"
-    num_sites: int = 8  # sites simulated in parallel; one round = one episode per site
-    steps_per_round: int = 450  # decisions collected per site per round (covers tau_e ticks)
+    num_sites: int = 8  # sites simulated in parallel; a round resets them all
+    steps_per_round: int = 450  # decisions per site and round (one tau_e episode is ~350)
     eps_start: float = 1.0
     eps_end: float = 0.05
     eps_decay_frames: int = 250_000  # frames (decisions, all sites) to anneal epsilon
@@ -127,7 +127,7 @@ class NetworkConfig:
 class TrainConfig:
     """Training schedule, periodic evaluation, early stopping, checkpoints, logging."""
 
-    max_episodes: int = 10_000  # N_E: training episodes in total (all sites)
+    max_episodes: int = 10_000  # N_E: budget of rounds x num_sites (one episode per site/round)
     eval_every: int = 2  # rounds between evaluations of the greedy policy
     eval_sims: int = 200  # evaluation sites (fixed common random numbers)
     eval_ticks: int = 3000
@@ -220,7 +220,6 @@ AGENT_SCHEMAS: dict[str, type] = {
     "tabular": TabularAgentConfig,
     "dqn": DQNAgentConfig,
 }
-ENCODINGS = ("partial", "all")
 
 
 def register_configs() -> None:
@@ -346,12 +345,17 @@ def validate_train(t: TrainConfig, path: str = "train") -> TrainConfig:
 def validate(cfg: Config) -> Config:
     """Check every range; raise :class:`ConfigError` naming the first bad field."""
     validate_site(cfg.site)
-    check_choice("state.name", cfg.state.name, ENCODINGS)
+    from .encodings import ENCODINGS  # the registry (imported late: it imports the simulator)
+
+    check_choice("state.name", cfg.state.name, tuple(ENCODINGS))
     check_range("mdp.tau_e", cfg.mdp.tau_e, 1, 10**9)
     check_range("mdp.p_f", cfg.mdp.p_f, 0.0, None)
     check_range("mdp.p_q", cfg.mdp.p_q, 0.0, None)
     check_range("mdp.gamma", cfg.mdp.gamma, 0.0, 1.0)
     validate_agent(cfg.agent)
+    if cfg.agent.name == "tabular" and cfg.state.name != "partial":
+        raise ConfigError(f"state.name={cfg.state.name!r} is invalid for agent=tabular: "
+                          "allowed partial (the tabular state discretises it)")
     validate_network(cfg.network)
     validate_train(cfg.train)
     check_range("eval.n_sims", cfg.eval.n_sims, 1, 10**8)

@@ -8,8 +8,8 @@ benchmark read either of them.
   none); ``TC`` = 0 if ``C`` is empty, else ``(ticks left of its occupant + 1) / (T_C + 1)``.
 * ``all`` (``N_N + 1``): the soc on every node (0 if empty), then ``TC``.
 
-Add an encoding by subclassing :class:`Encoding` and registering it in :data:`ENCODINGS`
-(and in ``fleet_torchrl.config.ENCODINGS`` plus a ``conf/state/<name>.yaml``).
+Add an encoding by subclassing :class:`Encoding`, registering it in :data:`ENCODINGS` (config
+validation reads this registry) and adding a ``conf/state/<name>.yaml``.
 """
 
 from __future__ import annotations

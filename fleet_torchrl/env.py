@@ -70,11 +70,10 @@ class FleetChargingEnv(EnvBase):
         self._seed = rng.training_seed(int(seed))
         self._episodes = torch.zeros(b, dtype=torch.int64, device=dev)
         self._arange = torch.arange(b, device=dev)
-        self._site_idx = torch.zeros(b, dtype=torch.int64, device=dev)
         self._hash = torch.zeros(b, dtype=torch.int64, device=dev)
         self._trips = torch.zeros(b, dtype=torch.int64, device=dev)
         self._queue = torch.zeros(b, dtype=torch.int64, device=dev)
-        self.state, _ = self.site.init_state(self._seed, self._site_idx)
+        self.state, _ = self.site.init_state(self._seed, self._arange)
 
     # ------------------------------------------------------------------ TorchRL hooks
     def _set_seed(self, seed: int | None) -> None:
@@ -140,7 +139,6 @@ class FleetChargingEnv(EnvBase):
             self._episodes += todo
             new, needs = self.site.init_state(self._seed, site_idx)
             self.state.update_(todo, new)
-            self._site_idx = torch.where(todo, site_idx, self._site_idx)
             self._hash = torch.where(todo, self.site.site_hash(self._seed, site_idx), self._hash)
             self._trips.masked_fill_(todo, 0)
             self._queue.masked_fill_(todo, 0)

@@ -11,8 +11,6 @@ Results are plain dicts (JSON-ready); :func:`compare` pairs two of them.
 
 from __future__ import annotations
 
-import csv
-import io
 import math
 import time
 from dataclasses import asdict
@@ -25,11 +23,9 @@ from torch import Tensor
 from .config import SiteConfig
 from .encodings import get_encoding
 from .policies import Policy
-from .runinfo import atomic_write, read_json, write_json
+from .runinfo import read_json, write_csv, write_json
 from .sim import Site
 
-SUMMARY_KEYS = ("trips_mean", "trips_std", "queue_mean", "queue_std", "failure_rate",
-                "ticks_survived_mean")
 Z95 = 1.959963984540054
 
 
@@ -152,15 +148,11 @@ def compare(path_a: str | Path, path_b: str | Path) -> dict[str, Any]:
 CSV_FIELDS = ("sim", "trips", "queue", "failed", "ticks_survived")
 
 
-def records_csv(result: dict[str, Any]) -> str:
+def record_rows(result: dict[str, Any]) -> list[dict[str, Any]]:
     rec = result["records"]
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(CSV_FIELDS)
-    for i, row in enumerate(zip(rec["trips"], rec["queue"], rec["failed"], rec["ticks_survived"],
-                                      strict=True)):
-        w.writerow((i, row[0], row[1], int(row[2]), row[3]))
-    return buf.getvalue()
+    return [{"sim": i, "trips": t, "queue": q, "failed": int(f), "ticks_survived": s}
+            for i, (t, q, f, s) in enumerate(zip(rec["trips"], rec["queue"], rec["failed"],
+                                                 rec["ticks_survived"], strict=True))]
 
 
 def save_result(result: dict[str, Any], path: str | Path) -> tuple[Path, Path]:
@@ -169,7 +161,7 @@ def save_result(result: dict[str, Any], path: str | Path) -> tuple[Path, Path]:
     if path.suffix != ".json":
         raise ValueError(f"result path must end in .json, got {path}")
     csv_path = path.with_suffix(".csv")
-    atomic_write(csv_path, lambda f: f.write(records_csv(result)))
+    write_csv(csv_path, record_rows(result), CSV_FIELDS)
     write_json(path, result)
     return path, csv_path
 

@@ -12,8 +12,6 @@ their best evaluation trips, failure rate breaking ties the other way. Writes ``
 from __future__ import annotations
 
 import argparse
-import csv
-import io
 import statistics
 import sys
 from pathlib import Path
@@ -21,7 +19,8 @@ from typing import Any
 
 import yaml
 
-from .runinfo import read_json, write_json, write_text
+from .cli import user_errors
+from .runinfo import read_json, write_csv, write_json, write_text
 
 FIELDS = ("rank", "config", "seeds", "trips_mean", "trips_std", "gain_pct_mean",
           "failure_rate_mean", "queue_mean")
@@ -104,25 +103,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("sweep_dir", nargs="?", default=None)
     p.add_argument("--out", default="results/grid", help="copy of the summary files")
     a = p.parse_args(argv)
-    try:
+    with user_errors():
         sweep = Path(a.sweep_dir) if a.sweep_dir else latest_sweep()
         if not sweep.is_dir():
             raise FileNotFoundError(f"no such sweep folder: {sweep}")
         jobs, missing, shared = collect(sweep)
         if not jobs:
             raise FileNotFoundError(f"no finished job in {sweep}")
-    except FileNotFoundError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
     rows = summarize(jobs)
     md = markdown(rows, missing, sweep, shared)
-    buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=FIELDS, lineterminator="\n")
-    w.writeheader()
-    w.writerows(rows)
     for folder in (sweep, Path(a.out)):
         write_text(folder / "summary.md", md)
-        write_text(folder / "summary.csv", buf.getvalue())
+        write_csv(folder / "summary.csv", rows, FIELDS)
         write_json(folder / "summary.json", {"sweep": str(sweep), "shared": shared,
                                              "rows": rows, "missing": missing, "jobs": jobs})
     print(md)

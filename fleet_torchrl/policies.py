@@ -8,7 +8,6 @@ A policy is an ``nn.Module`` mapping a batch of encoded observations ``[B, F]`` 
 
 from __future__ import annotations
 
-import torch
 from tensordict.nn import TensorDictModule
 from torch import Tensor, nn
 
@@ -75,16 +74,3 @@ def build_baseline(agent_cfg) -> Policy:
     if agent_cfg.name == "heuristic":
         return HeuristicPolicy(agent_cfg.threshold, agent_cfg.upper)
     raise ValueError(f"agent.name={agent_cfg.name!r} is not a baseline (rule, heuristic)")
-
-
-class RandomPolicy(Policy):
-    """Charges with probability 1/2 (a floor for learning tests)."""
-
-    name = "random"
-
-    def __init__(self, seed: int = 0) -> None:
-        super().__init__()
-        self.gen = torch.Generator().manual_seed(seed)
-
-    def forward(self, obs: Tensor) -> Tensor:
-        return torch.randint(0, 2, obs.shape[:-1], generator=self.gen).to(obs.device)

@@ -13,10 +13,10 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
+from .agents import load_policies
 from .cli import user_errors
 from .config import Config, register_configs, to_config
 from .plotting import TC_DQN, TC_TABULAR, plot_policy_map, save_figure
-from .sweeps import load_policies
 
 register_configs()
 

@@ -18,6 +18,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from .cli import user_errors
 from .evaluation import format_table
 from .runinfo import git_commit, read_json, write_text
 
@@ -72,10 +73,15 @@ def build(results: Path, out: Path) -> str:
     table = results / "table" / "table.json"
     if table.exists():
         rows = read_json(table)
+        size = ""
+        rule = results / "table" / "rule.json"
+        if rule.exists():
+            r = read_json(rule)
+            size = f" ({r['n_sims']} simulations x {r['ticks']} ticks, seed {r['seed']})"
         parts += [format_table(rows), "",
                   "Gain: mean paired difference in trips over the rule's mean, in %, with the "
-                  "half-width of its 95% confidence interval (1000 simulations x 10 000 ticks, "
-                  "common random numbers).", ""]
+                  f"half-width of its 95% confidence interval{size}, common random numbers.",
+                  ""]
         info = results / "table" / "run_info.json"
         if info.exists():
             tt = read_json(info).get("train_time_s", {})
@@ -99,9 +105,8 @@ def build(results: Path, out: Path) -> str:
         parts += ["Not run yet: `make policy-maps`.", ""]
 
     parts += ["## Generalisation sweeps (SPEC §5 item 3)", "",
-              "Policies trained on the default site, evaluated on changed sites (500 "
-              "simulations x 10 000 ticks per point). Cells: trips gain over the rule in % ± "
-              "95% CI (failure rate when not zero).", ""]
+              "Policies trained on the default site, evaluated on changed sites. Cells: trips "
+              "gain over the rule in % ± 95% CI (failure rate when not zero).", ""]
     for name, label in SWEEPS:
         js = results / "sweeps" / f"{name}.json"
         parts += [f"### {label}", ""]
@@ -109,6 +114,12 @@ def build(results: Path, out: Path) -> str:
             parts += [f"Not run yet: `make sweep-{name}`.", ""]
             continue
         s = read_json(js)
+        point = next(iter(sorted((results / "sweeps" / name).glob("*.json"))), None)
+        if point is not None:
+            ev = read_json(point).get("meta", {}).get("config", {}).get("eval", {})
+            if ev:
+                parts += [f"{ev['n_sims']} simulations x {ev['ticks']} ticks per point, "
+                          f"seed {ev['seed']}.", ""]
         parts += [_sweep_pivot(s["rows"]), ""]
         png = results / "sweeps" / f"{name}.png"
         if png.exists():
@@ -133,9 +144,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default="docs/report.md")
     a = p.parse_args(argv)
     results = Path(a.results)
-    if not results.is_dir():
-        print(f"error: no results folder {results}; run `make experiments` first", file=sys.stderr)
-        return 2
+    with user_errors():
+        if not results.is_dir():
+            raise FileNotFoundError(f"no results folder {results}; run `make experiments` first")
     out = Path(a.out)
     write_text(out, build(results, out))
     print(f"[report] wrote {out}")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import platform
@@ -49,6 +50,19 @@ def write_text(path: str | os.PathLike, text: str) -> Path:
     return atomic_write(path, lambda f: f.write(text))
 
 
+def write_csv(path: str | os.PathLike, rows: list[dict[str, Any]], fields: tuple[str, ...]
+              ) -> Path:
+    """Rows (dicts) as CSV with the given columns, written atomically."""
+    import csv
+
+    def write(f) -> None:
+        w = csv.DictWriter(f, fieldnames=fields, lineterminator="\n", extrasaction="ignore")
+        w.writeheader()
+        w.writerows(rows)
+
+    return atomic_write(path, write)
+
+
 def read_json(path: str | os.PathLike) -> Any:
     path = Path(path)
     if not path.is_file():
@@ -78,6 +92,7 @@ def to_jsonable(obj: Any) -> Any:
     return obj
 
 
+@functools.lru_cache(maxsize=8)
 def git_commit(cwd: str | os.PathLike | None = None) -> str | None:
     """The checked-out commit (with ``-dirty`` if the tree has changes), or None."""
     cwd = cwd or Path(__file__).resolve().parent
@@ -93,14 +108,20 @@ def git_commit(cwd: str | os.PathLike | None = None) -> str | None:
         return None
 
 
-def package_versions() -> dict[str, str | None]:
-    out: dict[str, str | None] = {}
+@functools.lru_cache(maxsize=1)
+def _package_versions() -> tuple[tuple[str, str | None], ...]:
+    out = []
     for p in PACKAGES:
         try:
-            out[p] = metadata.version(p)
+            out.append((p, metadata.version(p)))
         except metadata.PackageNotFoundError:
-            out[p] = None
-    return out
+            out.append((p, None))
+    return tuple(out)
+
+
+def package_versions() -> dict[str, str | None]:
+    """Versions of the stack (looked up once per process)."""
+    return dict(_package_versions())
 
 
 def run_info(config: Any = None, seed: int | None = None) -> dict[str, Any]:

@@ -78,9 +78,6 @@ class SiteState:
             mine.copy_(torch.where(mask, theirs, mine))  # [B] broadcasts over [V, B]
         return self
 
-    def to(self, device: torch.device | str) -> SiteState:
-        return SiteState(**{f.name: getattr(self, f.name).to(device) for f in fields(self)})
-
 
 @dataclass
 class TickOutcome:
@@ -100,7 +97,6 @@ class Site:
         n = self.n_nodes = cfg.n_nodes
         self.n_vehicles = cfg.n_vehicles
         self.t_c = cfg.t_c
-        self.closed_node = cfg.closed_node
         self.p_c = cfg.p_c
         self.soc_low = cfg.soc_low
         self.gain = cfg.e_charge / cfg.t_c
@@ -111,12 +107,6 @@ class Site:
             succ[k] = (k + 1) % n  # M -> 4, road -> next, N-1 -> D
         succ_charge = list(succ)
         succ_charge[D] = C
-        # Node whose occupancy blocks a move: the target, except for the vehicle leaving C,
-        # which checks the virtual node n ("M or B occupied") -- merge priority to B.
-        check = list(succ)
-        check[C] = n
-        check_charge = list(succ_charge)
-        check_charge[C] = n
         if n > MAX_NODES:
             raise ValueError(f"n_nodes={n} exceeds {MAX_NODES} (occupancy is a 64-bit mask)")
         kw = dict(dtype=torch.int64, device=self.device)

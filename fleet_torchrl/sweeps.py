@@ -24,6 +24,7 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig
 
+from .agents import load_policies
 from .cli import user_errors
 from .config import Config, register_configs, to_config, validate_site
 from .evaluation import evaluate_policy, gain_over
@@ -42,23 +43,6 @@ def point_value(param: str, value: float) -> float | int:
 def point_path(cfg: Config) -> Path:
     v = point_value(cfg.sweep.param, cfg.sweep.value)
     return Path(cfg.sweep.out) / cfg.sweep.name / f"{cfg.sweep.param}={v}.json"
-
-
-def load_policies(cfg: Config, names: list[str]) -> dict[str, Any]:
-    """Baselines by name, learned policies from ``table.policies_dir/<name>``."""
-    from .agents import load_policy_file
-    from .policies import HeuristicPolicy, RulePolicy
-
-    out: dict[str, Any] = {}
-    for name in names:
-        if name == "rule":
-            out[name] = RulePolicy()
-        elif name == "heuristic":
-            out[name] = HeuristicPolicy()
-        else:
-            out[name] = load_policy_file(Path(cfg.table.policies_dir) / name, cfg.eval.device)
-            out[name].name = name
-    return out
 
 
 def run_point(cfg: Config) -> list[dict[str, Any]] | None:
@@ -87,8 +71,8 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
     if err.exists():
         err.unlink()
     for r in rows:
-        print(f"[sweep] {param}={value} {r['policy']}: {r['trips_mean']:.1f} trips, "
-              f"gain {r['gain_pct']:+.2f} %" if r["gain_pct"] is not None else "")
+        gain = f", gain {r['gain_pct']:+.2f} %" if r["gain_pct"] is not None else ""
+        print(f"[sweep] {param}={value} {r['policy']}: {r['trips_mean']:.1f} trips{gain}")
     return rows
 
 

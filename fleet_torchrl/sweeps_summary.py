@@ -8,13 +8,12 @@ Lists failed points (``.error`` files) and, with ``--expect``, points that never
 from __future__ import annotations
 
 import argparse
-import csv
-import io
 import sys
 from pathlib import Path
 
+from .cli import user_errors
 from .plotting import plot_sweep, save_figure
-from .runinfo import read_json, write_json, write_text
+from .runinfo import read_json, write_csv, write_json
 from .sweeps import POINT_FIELDS
 
 
@@ -32,11 +31,7 @@ def summarize(name: str, out: Path, expect: list[str] | None = None) -> dict:
         raise FileNotFoundError(f"no finished point in {folder}")
     param = rows[0]["param"]
     rows.sort(key=lambda r: (r["value"], r["policy"]))
-    buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=POINT_FIELDS, lineterminator="\n")
-    w.writeheader()
-    w.writerows({k: r[k] for k in POINT_FIELDS} for r in rows)
-    write_text(out / f"{name}.csv", buf.getvalue())
+    write_csv(out / f"{name}.csv", rows, POINT_FIELDS)
     summary = {"sweep": name, "param": param, "rows": rows, "failed": failed,
                "missing": missing}
     write_json(out / f"{name}.json", summary)
@@ -52,11 +47,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--expect", nargs="*", default=None,
                    help="point names expected, e.g. p_c=0.0 p_c=0.2 (reported if missing)")
     a = p.parse_args(argv)
-    try:
+    with user_errors():
         s = summarize(a.name, Path(a.out), a.expect)
-    except (FileNotFoundError, ValueError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
     n_points = len({r["value"] for r in s["rows"]})
     print(f"[sweep {a.name}] {n_points} points -> {a.out}/{a.name}.csv, .json, .png")
     for label, items in (("failed", s["failed"]), ("missing", s["missing"])):

@@ -18,8 +18,6 @@
 
 from __future__ import annotations
 
-import csv
-import io
 import subprocess
 import sys
 import time
@@ -29,11 +27,12 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig
 
+from .agents import POLICY_FILE, load_policies
 from .cli import user_errors
 from .config import Config, register_configs, to_config
 from .evaluation import evaluate_policy, format_table, gain_over, save_result
-from .policies import HeuristicPolicy, RulePolicy
-from .runinfo import run_info, write_json, write_text
+from .runinfo import run_info, write_csv, write_json, write_text
+from .training import CHECKPOINT
 
 register_configs()
 
@@ -44,13 +43,13 @@ ROW_KEYS = ("policy", "trips_mean", "trips_std", "queue_mean", "queue_std", "fai
 def ensure_policy(name: str, overrides: list[str], cfg: Config) -> tuple[Path, float | None]:
     """Path of the saved policy ``name``, training it first if needed; returns (path, seconds)."""
     out_dir = Path(cfg.table.policies_dir) / name
-    policy = out_dir / "policy.pt"
+    policy = out_dir / POLICY_FILE
     summary = out_dir / "train_summary.json"
     if policy.exists() and summary.exists() and not cfg.table.retrain:
         print(f"[table] reusing {policy}")
         return policy, None
     run_dir = Path(cfg.table.runs_dir) / f"train_{name}"
-    resume = (run_dir / "checkpoint.ckpt").exists() and not cfg.table.retrain
+    resume = (run_dir / CHECKPOINT).exists() and not cfg.table.retrain
     cmd = [sys.executable, "-m", "fleet_torchrl.train", *overrides,
            f"train.out_dir={out_dir}", f"hydra.run.dir={run_dir}", f"resume={str(resume).lower()}",
            f"train.device={cfg.train.device}", f"seed={cfg.seed}"]
@@ -72,14 +71,6 @@ def build_rows(results: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
     return rows
 
 
-def rows_csv(rows: list[dict[str, Any]]) -> str:
-    buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=ROW_KEYS, lineterminator="\n")
-    w.writeheader()
-    w.writerows(rows)
-    return buf.getvalue()
-
-
 def rows_markdown(rows: list[dict[str, Any]], cfg: Config, extra: str = "") -> str:
     e = cfg.eval
     lines = [f"# Main comparison ({e.n_sims} simulations x {e.ticks} ticks, site "
@@ -93,18 +84,15 @@ def rows_markdown(rows: list[dict[str, Any]], cfg: Config, extra: str = "") -> s
 
 
 def run(cfg: Config) -> list[dict[str, Any]]:
-    from .agents import load_policy_file
     from .plotting import plot_gain_boxplot, save_figure
 
     out = Path(cfg.table.out)
-    policies: dict[str, Any] = {"rule": RulePolicy(), "heuristic": HeuristicPolicy()}
     train_time: dict[str, float | None] = {}
     for name, overrides in cfg.table.train.items():
-        path, secs = ensure_policy(name, list(overrides), cfg)
-        train_time[name] = secs
-        policies[name] = load_policy_file(path, cfg.eval.device)
+        train_time[name] = ensure_policy(name, list(overrides), cfg)[1]
     if not cfg.table.evaluate:
         return []
+    policies = load_policies(cfg, ["rule", "heuristic", *cfg.table.train])
     e = cfg.eval
     results: dict[str, dict[str, Any]] = {}
     for name, pol in policies.items():
@@ -125,7 +113,7 @@ def run(cfg: Config) -> list[dict[str, Any]]:
                        + (f"{v:.0f} s" if v is not None else "reused saved policy")
                        for k, v in train_time.items())
     write_text(out / "table.md", rows_markdown(rows, cfg, "\n" + timing + "\n"))
-    write_text(out / "table.csv", rows_csv(rows))
+    write_csv(out / "table.csv", rows, ROW_KEYS)
     write_json(out / "table.json", rows)
     write_json(out / "run_info.json", {**run_info(cfg, seed=e.seed), "train_time_s": train_time})
     print(format_table(rows))

@@ -1,19 +1,23 @@
 """Training loops for the learned agents (SPEC §3), with explicit setup stages.
 
 Schedule. Training runs in *rounds*: every round resets all ``agent.num_sites`` sites of the
-batched environment and plays one episode per site (``mdp.tau_e`` ticks, or until failure),
-so ``max_episodes / num_sites`` rounds in all. Starting every round from fresh resets makes a
+batched environment, so ``train.max_episodes / num_sites`` rounds in all (the budget counts
+one full episode per site and round). Starting every round from fresh resets makes a
 round boundary a clean checkpoint: the environment's whole state there is its seed and episode
 counters, and a resumed run continues exactly where an uninterrupted one would.
 
 Steps truncated by the tick budget end between two decisions, so their next observation is
 not a decision state; neither agent learns from them (one transition per episode).
 
-* Tabular: online Q-learning, one batched update per environment step, epsilon decayed
+* Tabular: a round plays exactly one episode per site (``mdp.tau_e`` ticks, or until
+  failure); online Q-learning, one batched update per environment step, epsilon decayed
   exponentially per episode (round) to ``eps_end``.
 * DQN: a TorchRL ``Collector`` (``reset_at_each_iter=True``) collects
-  ``num_sites x steps_per_round`` decisions with the epsilon-greedy actor, the batch goes to
-  the replay buffer, then ``updates_per_round`` gradient steps.
+  ``num_sites x steps_per_round`` decisions with the epsilon-greedy actor: one full episode
+  per site (450 decisions cover ``tau_e = 3000`` ticks), and sites whose episode ended
+  early start a new one that the round's end cuts off (``train/episodes`` counts every
+  episode that ended). The batch goes to the replay buffer, then ``updates_per_round``
+  gradient steps.
 
 Every ``eval_every`` rounds the greedy policy is evaluated with the protocol of SPEC §4 on a
 fixed common-random-numbers set (``train.eval_*``), next to the rule on the same set. Policies
@@ -60,9 +64,6 @@ class Trainer:
         if cfg.agent.name not in ("tabular", "dqn"):
             raise ValueError(f"agent.name={cfg.agent.name!r} is not trainable: use agent=tabular "
                              "or agent=dqn")
-        if cfg.agent.name == "tabular" and cfg.state.name != "partial":
-            raise ValueError(f"state.name={cfg.state.name!r} is invalid for agent=tabular: "
-                             "allowed partial (the tabular state discretises it)")
         self.cfg = cfg
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
@@ -249,8 +250,7 @@ class Trainer:
                              step)
         if pol.encoding == "partial":
             tcs = TC_TABULAR if self.cfg.agent.name == "tabular" else TC_DQN
-            fig = plot_policy_map(pol.cpu() if self.device.type == "cpu" else pol, tcs,
-                                  title=f"{self.name}, round {p['round']}")
+            fig = plot_policy_map(pol, tcs, title=f"{self.name}, round {p['round']}")
             self.monitor.figure("policy_map", fig, step)
             import matplotlib.pyplot as plt
 
@@ -318,7 +318,7 @@ class Trainer:
         if finished:
             write_json(self.out_dir / "train_summary.json", summary)
             write_json(self.run_dir / "train_summary.json", summary)
-            best = p["history"][[h["round"] for h in p["history"]].index(p["best_round"])]
+            best = summary["best"]
             self.monitor.hparams(asdict(c), {"hparam/eval_trips": best["trips"],
                                              "hparam/gain_pct": best["gain_pct"],
                                              "hparam/failure_rate": best["failure_rate"]})

@@ -7,19 +7,10 @@ import math
 
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
-from test_config import CONF
+from conftest import make_cfg
 
 from fleet_torchrl.agents import load_policy_file, save_policy
 from fleet_torchrl.agents.tabular import N_STATES, TabularLearner, state_index
-from fleet_torchrl.config import Config, register_configs, to_config
-
-register_configs()
-
-
-def make_cfg(overrides: list[str]) -> Config:
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        return to_config(compose(config_name="config", overrides=overrides))
 
 
 # ---------------------------------------------------------------------- tabular
@@ -189,4 +180,4 @@ def test_untrainable_agent_is_refused(tmp_path):
     with pytest.raises(ValueError, match="not trainable"):
         Trainer(make_cfg(["agent=rule"]), tmp_path)
     with pytest.raises(ValueError, match="state.name='all' is invalid for agent=tabular"):
-        Trainer(make_cfg(["agent=tabular", "state=all"]), tmp_path)
+        make_cfg(["agent=tabular", "state=all"])

@@ -4,24 +4,15 @@ from __future__ import annotations
 
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
-from hydra import compose, initialize_config_dir
+from conftest import CONF, make_cfg
 
-from fleet_torchrl.config import Config, ConfigError, register_configs, to_config
-
-CONF = Path(__file__).resolve().parents[1] / "conf"
-register_configs()
+from fleet_torchrl.config import Config, ConfigError
 
 
 def group_options(group: str) -> list[str]:
     return sorted(p.stem for p in (CONF / group).glob("*.yaml"))
-
-
-def _compose(overrides: list[str]) -> Config:
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        return to_config(compose(config_name="config", overrides=overrides))
 
 
 @pytest.mark.parametrize("group", ["site", "state", "agent", "eval", "mdp"])
@@ -29,12 +20,12 @@ def test_every_option_composes_and_validates(group):
     options = group_options(group)
     assert options, f"conf/{group} is empty"
     for opt in options:
-        cfg = _compose([f"{group}={opt}"])
+        cfg = make_cfg([f"{group}={opt}"])
         assert isinstance(cfg, Config)
 
 
 def test_defaults_are_the_spec_values():
-    cfg = _compose([])
+    cfg = make_cfg([])
     s = cfg.site
     assert (s.n_nodes, s.n_vehicles, s.p_c, s.t_c, s.soc_low) == (15, 3, 0.8, 30, 30.0)
     assert (s.e_move, s.e_idle, s.e_charge, s.closed_node, s.xi) == (0.5, 0.02, 40.0, 9, 10.0)
@@ -44,9 +35,9 @@ def test_defaults_are_the_spec_values():
 
 
 def test_site_variants():
-    assert _compose(["site=five_vehicles"]).site.n_vehicles == 5
-    assert _compose(["site=no_closure"]).site.p_c == 0.0
-    slow = _compose(["site=slow_charger"]).site
+    assert make_cfg(["site=five_vehicles"]).site.n_vehicles == 5
+    assert make_cfg(["site=no_closure"]).site.p_c == 0.0
+    slow = make_cfg(["site=slow_charger"]).site
     assert slow.t_c == 50 and slow.e_charge == 40.0
 
 
@@ -70,7 +61,7 @@ def test_site_variants():
 ])
 def test_bad_values_name_the_field(override, field):
     with pytest.raises(ConfigError) as e:
-        _compose(override.split())
+        make_cfg(override.split())
     msg = str(e.value)
     assert msg.startswith(f"{field}=") and "allowed" in msg and "\n" not in msg
 
@@ -79,9 +70,9 @@ def test_typos_and_wrong_types_are_rejected_by_the_schema():
     from omegaconf.errors import ConfigKeyError, ValidationError
 
     with pytest.raises((ConfigKeyError, Exception)):
-        _compose(["site.n_vehicle=3"])
+        make_cfg(["site.n_vehicle=3"])
     with pytest.raises((ValidationError, Exception)):
-        _compose(["site.n_vehicles=three"])
+        make_cfg(["site.n_vehicles=three"])
 
 
 def test_cli_reports_one_line_error_and_exit_code():

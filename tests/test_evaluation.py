@@ -150,4 +150,6 @@ def test_compare_cli(tmp_path):
     save_result(evaluate_policy(RulePolicy(), site, 20, 800, seed=0), tmp_path / "r.json")
     save_result(evaluate_policy(HeuristicPolicy(), site, 20, 800, seed=0), tmp_path / "h.json")
     assert main([str(tmp_path / "h.json"), str(tmp_path / "r.json")]) == 0
-    assert main([str(tmp_path / "h.json"), str(tmp_path / "nope.json")]) == 2
+    with pytest.raises(SystemExit) as e:
+        main([str(tmp_path / "h.json"), str(tmp_path / "nope.json")])
+    assert e.value.code == 2

@@ -7,13 +7,10 @@ import json
 
 import pytest
 import yaml
+from conftest import CONF, make_cfg
 from hydra import compose, initialize_config_dir
-from test_config import CONF
 
 from fleet_torchrl import grid
-from fleet_torchrl.config import register_configs, to_config
-
-register_configs()
 
 TINY_TRAIN = ["train.eval_every=1", "train.eval_sims=8", "train.eval_ticks=300",
               "train.progress=false", "mdp.tau_e=300", "train.tensorboard=false"]
@@ -23,11 +20,9 @@ TINY_TRAIN = ["train.eval_every=1", "train.eval_sims=8", "train.eval_ticks=300",
 def test_table_end_to_end(tmp_path):
     from fleet_torchrl.table import run
 
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        cfg = to_config(compose(config_name="config", overrides=[
-            "eval.n_sims=24", "eval.ticks=600", "eval.progress=false",
-            f"table.out={tmp_path}/table", f"table.policies_dir={tmp_path}/policies",
-            f"table.runs_dir={tmp_path}/runs"]))
+    cfg = make_cfg(["eval.n_sims=24", "eval.ticks=600", "eval.progress=false",
+                    f"table.out={tmp_path}/table", f"table.policies_dir={tmp_path}/policies",
+                    f"table.runs_dir={tmp_path}/runs"])
     cfg.table.train = {
         "tabular": ["agent=tabular", "agent.num_sites=8", "train.max_episodes=16", *TINY_TRAIN],
         "dqn_partial": ["agent=dqn", "state=partial", "agent.num_sites=2",
@@ -90,4 +85,6 @@ def test_grid_summary_ranks_configs_over_seeds(tmp_path):
     assert summary["shared"] == {"network.lr": "0.001"}
     assert len(summary["missing"]) == 1 and "width=128" in summary["missing"][0]
     assert (tmp_path / "copy" / "summary.md").exists()
-    assert grid.main([str(tmp_path / "nope")]) == 2
+    with pytest.raises(SystemExit) as e:
+        grid.main([str(tmp_path / "nope")])
+    assert e.value.code == 2

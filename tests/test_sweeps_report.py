@@ -10,13 +10,12 @@ from pathlib import Path
 
 import pytest
 import yaml
+from conftest import CONF, make_cfg
 from hydra import compose, initialize_config_dir
-from test_config import CONF
 
 from fleet_torchrl import report, sweeps_summary
-from fleet_torchrl.config import register_configs, to_config
+from fleet_torchrl.config import to_config
 
-register_configs()
 EXPERIMENTS = sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))
 
 
@@ -93,9 +92,7 @@ def test_policy_maps_from_saved_policies(tmp_path):
     from fleet_torchrl.policy_maps import run
 
     root = _policies(tmp_path)
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        cfg = to_config(compose(config_name="config", overrides=[
-            f"table.policies_dir={root}", f"maps.out={tmp_path / 'maps'}"]))
+    cfg = make_cfg([f"table.policies_dir={root}", f"maps.out={tmp_path / 'maps'}"])
     paths = run(cfg)
     assert sorted(p.name for p in paths) == ["dqn_partial.png", "heuristic.png", "rule.png",
                                              "tabular.png"]
@@ -132,4 +129,6 @@ def test_report_from_fixture_results(tmp_path):
     assert "`make table` | 25.0 min" in text
     assert "Not run yet: `make sweep-tc`" in text and "Not run yet: `make grid`" in text
     assert (tmp_path / "docs" / "figures" / "boxplot.png").exists()
-    assert report.main(["--results", str(tmp_path / "none"), "--out", str(out)]) == 2
+    with pytest.raises(SystemExit) as e:
+        report.main(["--results", str(tmp_path / "none"), "--out", str(out)])
+    assert e.value.code == 2

@@ -30,7 +30,7 @@ def run_name(cfg: Config) -> str:
 def default_policy_dir(cfg: Config) -> Path:
     if cfg.train.out_dir:
         return Path(cfg.train.out_dir)
-    return Path("results/policies") / run_name(cfg)
+    return Path(cfg.table.policies_dir) / run_name(cfg)
 
 
 def save_policy(path: str | Path, policy: Policy, kind: str, n_obs: int,
@@ -86,7 +86,24 @@ def load_policy(cfg: Config) -> Policy:
     """The saved policy named by ``cfg.agent.policy`` or the default location of its run."""
     path = Path(cfg.agent.policy) if cfg.agent.policy else default_policy_dir(cfg)
     policy = load_policy_file(path, cfg.eval.device)
-    if cfg.agent.name == "dqn" and policy.encoding != cfg.state.name:
+    if policy.encoding != cfg.state.name:
         raise ValueError(f"{path} was trained on state={policy.encoding}, not "
                          f"state={cfg.state.name}")
     return policy
+
+
+def load_policies(cfg: Config, names: list[str]) -> dict[str, Policy]:
+    """Policies by name: ``rule`` and ``heuristic`` from ``cfg.agent``'s defaults, learned ones
+    from ``cfg.table.policies_dir/<name>/policy.pt``."""
+    from ..policies import HeuristicPolicy, RulePolicy
+
+    out: dict[str, Policy] = {}
+    for name in names:
+        if name == "rule":
+            out[name] = RulePolicy()
+        elif name == "heuristic":
+            out[name] = HeuristicPolicy()
+        else:
+            out[name] = load_policy_file(Path(cfg.table.policies_dir) / name, cfg.eval.device)
+            out[name].name = name
+    return out

@@ -43,9 +43,6 @@ class DQNPolicy(Policy):
         self.qnet = qnet
         self.encoding = encoding
 
-    def q_values(self, obs: Tensor) -> Tensor:
-        return self.qnet(obs)
-
     def forward(self, obs: Tensor) -> Tensor:
         return self.qnet(obs).argmax(-1)
 
@@ -71,7 +68,6 @@ class DQNLearner(nn.Module):
         super().__init__()
         self.qnet = make_qnet(net, n_obs).to(device)
         self.actor = make_actor(self.qnet)
-        self.greedy = self.actor  # TensorDict module: observation -> action
         self.egreedy = EGreedyModule(action_spec.clone(), eps_init=agent.eps_start,
                                      eps_end=agent.eps_end,
                                      annealing_num_steps=agent.eps_decay_frames)
