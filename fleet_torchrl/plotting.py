@@ -65,6 +65,19 @@ def plot_gain_boxplot(gains: dict[str, list[float]], title: str):
     fig, ax = plt.subplots(figsize=(1.5 * len(gains) + 2, 3.6))
     ax.boxplot(list(gains.values()), showfliers=True, flierprops={"markersize": 2})
     ax.set_xticks(range(1, len(gains) + 1), list(gains), rotation=15)
+    # a failed simulation (tens of % below) would squash every box: clip the axis to the
+    # central range and count what lies outside it
+    values = torch.tensor([v for vs in gains.values() for v in vs], dtype=torch.float64)
+    if values.numel() > 0:
+        lo, hi = torch.quantile(values, torch.tensor([0.001, 0.999], dtype=torch.float64))
+        pad = 0.15 * float(hi - lo) + 0.5
+        lo, hi = float(lo) - pad, float(hi) + pad
+        ax.set_ylim(lo, hi)
+        for i, vs in enumerate(gains.values(), start=1):
+            out = sum(1 for v in vs if v < lo or v > hi)
+            if out:
+                ax.annotate(f"{out} outside\n(failures)", (i, lo), textcoords="offset points",
+                            xytext=(0, 4), ha="center", fontsize=7, color="firebrick")
     ax.axhline(0.0, color="grey", lw=0.8, ls="--")
     ax.set_ylabel("trips, % over rule mean")
     ax.set_title(title, fontsize=10)

@@ -46,7 +46,7 @@ def _sweep_pivot(rows: list[dict[str, Any]]) -> str:
             if r is None or r["gain_pct"] is None:
                 cells.append("")
             else:
-                fail = f", fail {r['failure_rate']:.2f}" if r["failure_rate"] > 0 else ""
+                fail = f", fail {r['failure_rate']:.3f}" if r["failure_rate"] > 0 else ""
                 cells.append(f"{r['gain_pct']:+.2f} ± {r['gain_ci95']:.2f}{fail}")
         lines.append(f"| {v} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
@@ -58,7 +58,9 @@ def build(results: Path, out: Path) -> str:
     parts = ["# fleet_torchrl: results report", "",
              f"Generated {datetime.now(UTC).isoformat(timespec='seconds')} from the "
              f"files under `{results}/` by `make report` (commit `{git_commit() or 'unknown'}`)."
-             " Every number below is read from those files; regenerate with `make report`.", ""]
+             " Every number below is read from those files; regenerate with `make report`. "
+             "What the numbers mean, and why the learned policies fall short of the thesis's "
+             "gains on this site model: [TRAINING.md](TRAINING.md).", ""]
     timings = results / "timings.json"
     if timings.exists():
         t = read_json(timings)

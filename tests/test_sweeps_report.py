@@ -126,6 +126,7 @@ def test_report_from_fixture_results(tmp_path):
     text = out.read_text()
     assert "| dqn_all |" in text and "+2.50" in text
     assert "| 0.8 | +0.00 ± 0.30 | +1.50 ± 0.30 |" in text
+    assert "[TRAINING.md](TRAINING.md)" in text
     assert "`make table` | 25.0 min" in text
     assert "Not run yet: `make sweep-tc`" in text and "Not run yet: `make grid`" in text
     assert (tmp_path / "docs" / "figures" / "boxplot.png").exists()
