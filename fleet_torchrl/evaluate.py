@@ -17,7 +17,7 @@ from omegaconf import DictConfig
 
 from .cli import user_errors
 from .config import Config, register_configs, to_config
-from .evaluation import evaluate_policy, format_table, save_result
+from .evaluation import evaluate_with, format_table, save_result
 from .policies import Policy, build_baseline
 from .runinfo import run_info
 
@@ -37,8 +37,7 @@ def make_policy(cfg: Config) -> Policy:
 def run(cfg: Config, out: str | Path | None) -> dict:
     policy = make_policy(cfg)
     e = cfg.eval
-    result = evaluate_policy(policy, cfg.site, e.n_sims, e.ticks, e.seed, e.device, e.chunk,
-                             progress=e.progress, name=cfg.agent.name)
+    result = evaluate_with(policy, cfg.site, e, name=cfg.agent.name)
     result["meta"] = run_info(cfg, seed=e.seed)
     print(format_table([result]))
     print(f"({e.n_sims} sims x {e.ticks} ticks on site '{cfg.site.name}', seed {e.seed}, "

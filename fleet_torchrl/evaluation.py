@@ -20,7 +20,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from .config import SiteConfig
+from .config import EvalConfig, SiteConfig
 from .encodings import get_encoding
 from .policies import Policy
 from .runinfo import read_json, write_csv, write_json
@@ -107,6 +107,14 @@ def evaluate_policy(policy: Policy, site_cfg: SiteConfig, n_sims: int, ticks: in
         "wall_time_s": wall,
         "records": {k: v.tolist() for k, v in rec.items()},
     }
+
+
+def evaluate_with(policy: Policy, site_cfg: SiteConfig, eval_cfg: EvalConfig,
+                  name: str | None = None) -> dict[str, Any]:
+    """:func:`evaluate_policy` with the protocol settings of an ``eval`` config."""
+    e = eval_cfg
+    return evaluate_policy(policy, site_cfg, e.n_sims, e.ticks, e.seed, e.device, e.chunk,
+                           progress=e.progress, name=name)
 
 
 # ------------------------------------------------------------------------- comparison

@@ -27,7 +27,7 @@ from omegaconf import DictConfig
 from .agents import load_policies
 from .cli import user_errors
 from .config import Config, register_configs, to_config, validate_site
-from .evaluation import evaluate_policy, gain_over
+from .evaluation import evaluate_with, gain_over
 from .runinfo import run_info, write_json, write_text
 
 register_configs()
@@ -55,8 +55,7 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
     value = point_value(param, cfg.sweep.value)
     site = validate_site(replace(cfg.site, **{param: value}, name=f"{param}={value}"))
     e = cfg.eval
-    results = {name: evaluate_policy(pol, site, e.n_sims, e.ticks, e.seed, e.device, e.chunk,
-                                     progress=e.progress, name=name)
+    results = {name: evaluate_with(pol, site, e, name=name)
                for name, pol in load_policies(cfg, cfg.sweep.policies).items()}
     rule = results.get("rule")
     rows = []

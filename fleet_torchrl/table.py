@@ -30,7 +30,7 @@ from omegaconf import DictConfig
 from .agents import POLICY_FILE, load_policies
 from .cli import user_errors
 from .config import Config, register_configs, to_config
-from .evaluation import evaluate_policy, format_table, gain_over, save_result
+from .evaluation import evaluate_with, format_table, gain_over, save_result
 from .runinfo import run_info, write_csv, write_json, write_text
 from .training import CHECKPOINT
 
@@ -96,8 +96,7 @@ def run(cfg: Config) -> list[dict[str, Any]]:
     e = cfg.eval
     results: dict[str, dict[str, Any]] = {}
     for name, pol in policies.items():
-        res = evaluate_policy(pol, cfg.site, e.n_sims, e.ticks, e.seed, e.device, e.chunk,
-                              progress=e.progress, name=name)
+        res = evaluate_with(pol, cfg.site, e, name=name)
         res["meta"] = run_info(cfg, seed=e.seed)
         save_result(res, out / f"{name}.json")
         results[name] = res
