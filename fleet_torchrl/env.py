@@ -31,7 +31,7 @@ from torchrl.envs import EnvBase
 from . import rng
 from .config import MDPConfig, SiteConfig
 from .encodings import get_encoding
-from .sim import Site
+from .sim import Site, TickOutcome
 
 _MAX_REDRAWS = 100
 
@@ -101,11 +101,9 @@ class FleetChargingEnv(EnvBase):
         truncated = torch.zeros_like(terminated)
         p_f, p_q, tau = self.mdp.p_f, self.mdp.p_q, self.mdp.tau_e
         while True:
-            out = self.site.tick(s, self.site.closures_hashed(self._hash, s.tick), active)
+            out = self._advance(active)
             cost -= torch.where(out.failed, p_f, torch.where(out.queue, p_q, 0.0))
             n_ticks += active
-            self._trips += out.arrived
-            self._queue += out.queue
             terminated |= out.failed
             out_of_time = active & (s.tick >= tau) & ~out.failed
             truncated |= out_of_time
@@ -120,6 +118,14 @@ class FleetChargingEnv(EnvBase):
         return td
 
     # ------------------------------------------------------------------ internals
+    def _advance(self, active: torch.Tensor) -> TickOutcome:
+        """One tick of the ``active`` sites with their closure draws; updates the counters."""
+        s = self.state
+        out = self.site.tick(s, self.site.closures_hashed(self._hash, s.tick), active)
+        self._trips += out.arrived
+        self._queue += out.queue
+        return out
+
     def _observe(self) -> TensorDictBase:
         return TensorDict(
             {
@@ -145,10 +151,7 @@ class FleetChargingEnv(EnvBase):
             running = todo & ~needs
             failed = torch.zeros_like(todo)
             while bool(running.any()):
-                out = self.site.tick(self.state, self.site.closures_hashed(self._hash,
-                                                                          self.state.tick),
-                                     running)
-                self._trips += out.arrived
+                out = self._advance(running)
                 failed |= out.failed
                 running &= ~(out.arrived | out.failed)
             if not bool(failed.any()):

@@ -41,7 +41,7 @@ import torch
 from .agents import POLICY_FILE, default_policy_dir, run_name, save_policy
 from .config import Config
 from .env import FleetChargingEnv
-from .evaluation import evaluate_policy
+from .evaluation import evaluate_policy, gain_over
 from .monitor import Monitor
 from .plotting import TC_DQN, TC_TABULAR, plot_policy_map
 from .policies import Policy, RulePolicy
@@ -172,7 +172,10 @@ class Trainer:
         b = env.num_sites
         live = torch.ones(b, dtype=torch.bool, device=self.device)
         ep_reward = torch.zeros(b, device=self.device)
-        final = {}
+        # per-site counters at the end of each site's episode
+        final = {k: torch.zeros(b, dtype=torch.int64, device=self.device)
+                 for k in ("trips", "queue_ticks", "ticks")}
+        final["failed"] = torch.zeros(b, dtype=torch.bool, device=self.device)
         td_err, n_upd, frames = 0.0, 0, 0
         while bool(live.any()):
             obs = td["observation"]
@@ -190,9 +193,8 @@ class Trainer:
             ep_reward += reward * live
             ending = live & done
             for key in ("trips", "queue_ticks", "ticks"):
-                final[key] = torch.where(ending, nxt[key].squeeze(-1),
-                                         final.get(key, torch.zeros_like(nxt[key].squeeze(-1))))
-            final["failed"] = torch.where(ending, term, final.get("failed", torch.zeros_like(term)))
+                final[key] = torch.where(ending, nxt[key].squeeze(-1), final[key])
+            final["failed"] = torch.where(ending, term, final["failed"])
             live &= ~done
             td = env.step_mdp(td)
         return {"frames": frames, "episodes": b, "train/episode_reward": float(ep_reward.mean()),
@@ -229,8 +231,7 @@ class Trainer:
     def evaluate(self, step: int) -> dict[str, Any]:
         pol = self.policy()
         res = evaluate_policy(pol, name=self.name, **self.eval_args)
-        rule = self.rule_eval
-        gain = 100.0 * (res["trips_mean"] - rule["trips_mean"]) / rule["trips_mean"]
+        gain = gain_over(res, self.rule_eval)["gain_pct"]
         p = self.progress
         if better(res, p["best"]):
             p.update(best=[res["failure_rate"], res["trips_mean"]], best_round=p["round"],
