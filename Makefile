@@ -8,7 +8,7 @@ ARGS   ?=
 PYTEST_ARGS ?=
 
 .PHONY: help install test test-fast lint format table train evaluate grid bench tensorboard clean \
-        policies policy-maps sweep-pc sweep-tc sweep-nv sweeps experiments report
+        policies policy-maps sweep-pc sweep-tc sweep-nv sweeps experiments report objective
 TIMED  := $(PY) -m fleet_torchrl.timing
 
 help:  ## list the targets
@@ -68,6 +68,9 @@ train: $(STAMP)  ## train one policy, e.g. ARGS="agent=dqn state=all"
 grid: $(STAMP)  ## DQN hyperparameter grid search (Hydra multirun, joblib) + summary -> results/grid
 	$(TIMED) grid -- $(PY) -m fleet_torchrl.train -m +experiment=grid $(ARGS)
 	$(PY) -m fleet_torchrl.grid
+
+objective: $(STAMP)  ## how the MDP reward ranks policies vs their trips -> results/objective
+	$(PY) -m fleet_torchrl.objective $(ARGS)
 
 evaluate: $(STAMP)  ## evaluate a policy (SPEC §4); overrides in ARGS
 	$(PY) -m fleet_torchrl.evaluate $(ARGS)

@@ -55,6 +55,7 @@ class MDPConfig:
     p_f: float = 50.0  # cost of a failure tick
     p_q: float = 1.0  # cost of a queue tick
     gamma: float = 0.9  # discount
+    r_trip: float = 0.0  # reward per completed trip; 0 = SPEC §2 (an extension, see docs)
 
 
 @dataclass
@@ -199,6 +200,15 @@ class MapsConfig:
 
 
 @dataclass
+class ObjectiveConfig:
+    """``python -m fleet_torchrl.objective``: the MDP's reward per decision next to trips."""
+
+    n_sites: int = 200  # one episode of mdp.tau_e ticks per site
+    seed: int = 7  # training-style sites (rng.training_seed), apart from both eval sets
+    out: str = "results/objective"
+
+
+@dataclass
 class Config:
     site: SiteConfig = field(default_factory=SiteConfig)
     state: StateConfig = field(default_factory=StateConfig)
@@ -210,6 +220,7 @@ class Config:
     table: TableConfig = field(default_factory=TableConfig)
     sweep: SweepConfig = field(default_factory=SweepConfig)
     maps: MapsConfig = field(default_factory=MapsConfig)
+    objective: ObjectiveConfig = field(default_factory=ObjectiveConfig)
     seed: int = 0
     resume: bool = False
 
@@ -352,6 +363,7 @@ def validate(cfg: Config) -> Config:
     check_range("mdp.p_f", cfg.mdp.p_f, 0.0, None)
     check_range("mdp.p_q", cfg.mdp.p_q, 0.0, None)
     check_range("mdp.gamma", cfg.mdp.gamma, 0.0, 1.0)
+    check_range("mdp.r_trip", cfg.mdp.r_trip, 0.0, None)
     validate_agent(cfg.agent)
     if cfg.agent.name == "tabular" and cfg.state.name != "partial":
         raise ConfigError(f"state.name={cfg.state.name!r} is invalid for agent=tabular: "
@@ -365,6 +377,8 @@ def validate(cfg: Config) -> Config:
     validate_device("eval.device", cfg.eval.device)
     check_range("seed", cfg.seed, 0, 2**32 - 1)
     check_choice("sweep.param", cfg.sweep.param, SWEEP_PARAMS)
+    check_range("objective.n_sites", cfg.objective.n_sites, 1, 10**7)
+    check_range("objective.seed", cfg.objective.seed, 0, 2**32 - 1)
     known = ("rule", "heuristic", *cfg.table.train.keys())
     for i, name in enumerate(cfg.sweep.policies):
         check_choice(f"sweep.policies[{i}]", name, known)

@@ -99,10 +99,12 @@ class FleetChargingEnv(EnvBase):
         n_ticks = torch.zeros(b, dtype=torch.int64, device=self.device)
         terminated = torch.zeros(b, dtype=torch.bool, device=self.device)
         truncated = torch.zeros_like(terminated)
-        p_f, p_q, tau = self.mdp.p_f, self.mdp.p_q, self.mdp.tau_e
+        p_f, p_q, r_trip, tau = self.mdp.p_f, self.mdp.p_q, self.mdp.r_trip, self.mdp.tau_e
         while True:
             out = self._advance(active)
             cost -= torch.where(out.failed, p_f, torch.where(out.queue, p_q, 0.0))
+            if r_trip:
+                cost += torch.where(out.arrived & active, r_trip, 0.0)
             n_ticks += active
             terminated |= out.failed
             out_of_time = active & (s.tick >= tau) & ~out.failed

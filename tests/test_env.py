@@ -48,6 +48,21 @@ def test_reward_is_mean_tick_cost_and_counters_add_up():
     assert td["next", "reward"].min() < 0  # the rule queues
 
 
+def test_trip_reward_adds_one_trip_per_step():
+    """``mdp.r_trip`` (an extension, 0 by default) adds ``r_trip`` per trip to the tick costs."""
+    plain = FleetChargingEnv(num_sites=16, seed=3)
+    bonus = FleetChargingEnv(num_sites=16, seed=3, mdp=MDPConfig(r_trip=10.0))
+    rule = as_td_module(RulePolicy())
+    a = plain.rollout(40, rule, break_when_any_done=False)
+    b = bonus.rollout(40, rule, break_when_any_done=False)
+    assert (a["next", "queue_ticks"] == b["next", "queue_ticks"]).all()  # same dynamics
+    ticks = (a["next", "ticks"] - a["ticks"]).float()
+    ok = ~a["next", "done"]
+    # every step that is not done ends with exactly one trip, spread over the step's ticks
+    assert torch.allclose(b["next", "reward"][ok], a["next", "reward"][ok] + 10.0 / ticks[ok],
+                          atol=1e-5)
+
+
 def test_failure_terminates_with_failure_cost():
     site = SiteConfig(e_move=5.0, xi=60.0, soc_low=30.0)
     env = FleetChargingEnv(site=site, num_sites=8, seed=0)
