@@ -122,6 +122,7 @@ class NetworkConfig:
     batch_size: int = 64
     buffer_size: int = 50_000
     target_update: int = 500  # gradient steps between hard target-network copies
+    grad_clip: float = 0.0  # max gradient norm per step; 0 = no clipping
 
 
 @dataclass
@@ -337,6 +338,7 @@ def validate_network(n: NetworkConfig, path: str = "network") -> NetworkConfig:
                 allowed=f"[1, buffer_size = {n.buffer_size}]")
     check_range(f"{path}.buffer_size", n.buffer_size, 1, 100_000_000)
     check_range(f"{path}.target_update", n.target_update, 1, None)
+    check_range(f"{path}.grad_clip", n.grad_clip, 0.0, None)
     return n
 
 

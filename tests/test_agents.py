@@ -79,6 +79,32 @@ def test_dqn_loss_falls_on_a_fixed_buffer():
     assert lrn.epsilon < 1.0  # epsilon annealed by the observed frames
 
 
+def test_dqn_grad_clip_bounds_the_step():
+    """``network.grad_clip`` caps the gradient norm the optimiser sees (SGD: step = lr * g)."""
+    from fleet_torchrl.agents.dqn import DQNLearner
+    from fleet_torchrl.env import FleetChargingEnv
+
+    env = FleetChargingEnv(num_sites=8, seed=0)
+    batch = None
+    steps = {}
+    for clip in (0.0, 1e-3):
+        torch.manual_seed(0)
+        cfg = make_cfg(["agent=dqn", f"network.grad_clip={clip}", "network.weight_decay=0"])
+        lrn = DQNLearner(cfg.agent, cfg.network, 3, "partial", env.action_spec, 0.9, "cpu")
+        params = lrn.loss.value_network_params
+        lrn.optimizer = torch.optim.SGD(params.values(True, True), lr=1.0)
+        if batch is None:
+            batch = env.rollout(60, lrn.explore, break_when_any_done=False)
+        lrn.observe(batch)
+        lrn.buffer.sample = lambda b=lrn.buffer[:64]: b  # same sample for both runs
+        before = params.clone().detach()
+        lrn.update(1)
+        delta = (params.detach() - before).flatten_keys()
+        steps[clip] = float(torch.cat([v.flatten() for v in delta.values()]).norm())
+    assert steps[0.0] > 1e-3  # unclipped gradients are larger than the cap here
+    assert steps[1e-3] == pytest.approx(1e-3, rel=1e-3)
+
+
 def test_policy_files_round_trip_and_reject_bad_input(tmp_path):
     from fleet_torchrl.agents.dqn import DQNPolicy, make_qnet
 

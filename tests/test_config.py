@@ -58,6 +58,7 @@ def test_site_variants():
     ("state.name=foo", "state.name"),
     ("mdp.gamma=1.5", "mdp.gamma"),
     ("mdp.r_trip=-1", "mdp.r_trip"),
+    ("agent=dqn network.grad_clip=-1", "network.grad_clip"),
     ("objective.n_sites=0", "objective.n_sites"),
     ("eval.n_sims=0", "eval.n_sims"),
     ("eval.device=gpu0", "eval.device"),

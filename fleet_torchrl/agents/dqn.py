@@ -79,6 +79,7 @@ class DQNLearner(nn.Module):
         self.optimizer = torch.optim.Adam(self.loss.value_network_params.values(True, True),
                                           lr=net.lr, weight_decay=net.weight_decay)
         self.buffer = make_replay_buffer(net, agent.prioritized, device)
+        self.grad_clip = net.grad_clip
         self.prioritized = agent.prioritized
         self.encoding = encoding
 
@@ -112,6 +113,9 @@ class DQNLearner(nn.Module):
             loss = self.loss(sample)["loss"]
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
+            if self.grad_clip > 0:
+                torch.nn.utils.clip_grad_norm_(self.loss.value_network_params.values(True, True),
+                                               self.grad_clip)
             self.optimizer.step()
             self.target_updater.step()
             if self.prioritized:
