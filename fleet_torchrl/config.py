@@ -79,6 +79,7 @@ class HeuristicAgentConfig(AgentConfig):
     name: str = "heuristic"
     threshold: float = 40.0
     upper: float = 60.0
+    others_below: float = 100.0  # charge early only if another vehicle is this low; 100 = off
 
 
 @dataclass
@@ -313,6 +314,7 @@ def validate_agent(a: Any, path: str = "agent") -> Any:
         check_range(f"{path}.threshold", a.threshold, 0.0, 100.0)
     if name == "heuristic":
         check_range(f"{path}.upper", a.upper, 0.0, 100.0)
+        check_range(f"{path}.others_below", a.others_below, 0.0, 100.0)
     if name in ("tabular", "dqn"):
         check_range(f"{path}.eps_start", a.eps_start, 0.0, 1.0)
         check_range(f"{path}.eps_end", a.eps_end, 0.0, a.eps_start,

@@ -10,7 +10,8 @@ until failure) on each of ``objective.n_sites`` training-style sites drawn under
 the mean reward per decision (the quantity a discounted learner maximises on average, since
 ``V = r / (1 - gamma)`` for a constant per-step reward) beside trips, queue ticks and failures.
 The policies are the rule, the heuristic at several upper limits (the "charge early" family
-whose trips peak near 60) and every saved learned policy found in ``table.policies_dir``.
+whose trips peak near 60), one that charges early only while another vehicle is at most 75
+(``heuristic_65_75``), and every saved learned policy found in ``table.policies_dir``.
 If a policy with a higher reward makes fewer trips, a perfect learner of that reward
 ends up below the best trips gain (docs/TRAINING.md).
 """
@@ -67,6 +68,8 @@ def candidate_policies(cfg: Config) -> dict[str, Policy]:
                                                   if cfg.agent.name == "rule" else 40.0)}
     for upper in (50.0, 60.0, 65.0, 70.0, 80.0):
         pols[f"heuristic_{upper:g}"] = HeuristicPolicy(40.0, upper)
+    # early charging only while another vehicle is at most 75: as little queueing, more trips
+    pols["heuristic_65_75"] = HeuristicPolicy(40.0, 65.0, others_below=75.0)
     from .agents import load_policy_file
 
     root = Path(cfg.table.policies_dir)

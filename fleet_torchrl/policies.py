@@ -44,20 +44,27 @@ class HeuristicPolicy(Policy):
     Charge when the charger is free, the vehicle at ``D`` has the lowest soc of all vehicles
     not at ``C`` (ties count as lowest) and its soc is at most ``upper``; otherwise follow the
     rule with ``threshold``. Charging early while the charger idles moves charging time out
-    of the busy periods where vehicles would queue behind it.
+    of the busy periods where vehicles would queue behind it. With ``others_below`` < 100 it
+    charges early only while another vehicle is at most that full, i.e. when the charger will
+    be wanted soon (``heuristic_65_75`` in ``make objective`` queues as little as upper 65
+    and makes more trips than upper 60).
     """
 
     name = "heuristic"
     encoding = "partial"
 
-    def __init__(self, threshold: float = 40.0, upper: float = 60.0) -> None:
+    def __init__(self, threshold: float = 40.0, upper: float = 60.0,
+                 others_below: float = 100.0) -> None:
         super().__init__()
         self.threshold = float(threshold)
         self.upper = float(upper)
+        self.others_below = float(others_below)
 
     def forward(self, obs: Tensor) -> Tensor:
         soc_d, others, tc = obs[..., 0], obs[..., 1], obs[..., 2]
         early = (tc == 0) & (soc_d <= others) & (soc_d <= self.upper / 100.0)
+        if self.others_below < 100.0:
+            early &= others <= self.others_below / 100.0
         return (early | (soc_d <= self.threshold / 100.0)).long()
 
 
@@ -72,5 +79,5 @@ def build_baseline(agent_cfg) -> Policy:
     if agent_cfg.name == "rule":
         return RulePolicy(agent_cfg.threshold)
     if agent_cfg.name == "heuristic":
-        return HeuristicPolicy(agent_cfg.threshold, agent_cfg.upper)
+        return HeuristicPolicy(agent_cfg.threshold, agent_cfg.upper, agent_cfg.others_below)
     raise ValueError(f"agent.name={agent_cfg.name!r} is not a baseline (rule, heuristic)")

@@ -55,6 +55,7 @@ def test_site_variants():
     ("site.xi=80", "site.xi"),
     ("agent.threshold=101", "agent.threshold"),
     ("agent=heuristic agent.upper=-1", "agent.upper"),
+    ("agent=heuristic agent.others_below=120", "agent.others_below"),
     ("state.name=foo", "state.name"),
     ("mdp.gamma=1.5", "mdp.gamma"),
     ("mdp.r_trip=-1", "mdp.r_trip"),

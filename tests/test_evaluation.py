@@ -60,6 +60,9 @@ def test_baseline_decisions():
                         [0.55, 0.5, 0.0], [0.65, 0.9, 0.0]])
     assert RulePolicy()(obs).tolist() == [1, 0, 0, 0, 0, 0]
     assert HeuristicPolicy()(obs).tolist() == [1, 1, 1, 0, 0, 0]
+    # charge early only while another vehicle is at most 55: the third row's other is at 60
+    assert HeuristicPolicy(others_below=55)(obs).tolist() == [1, 1, 0, 0, 0, 0]
+    assert HeuristicPolicy(upper=70, others_below=95)(obs).tolist() == [1, 1, 1, 0, 0, 1]
 
 
 def test_same_seed_same_numbers_and_sims_are_paired():
@@ -186,6 +189,6 @@ def test_objective_cli(tmp_path):
     assert "| rule |" in r.stdout and "| heuristic_60 |" in r.stdout
     res = json.loads((out / "objective.json").read_text())
     assert set(res["scores"]) == {"rule", "heuristic_50", "heuristic_60", "heuristic_65",
-                                  "heuristic_70", "heuristic_80"}
+                                  "heuristic_70", "heuristic_80", "heuristic_65_75"}
     assert res["meta"]["config"]["mdp"]["tau_e"] == 300
     assert (out / "objective.md").read_text().startswith("| policy |")
