@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from omegaconf import MISSING, DictConfig, OmegaConf
@@ -389,6 +390,24 @@ def validate(cfg: Config) -> Config:
     for i, name in enumerate(cfg.maps.policies):
         check_choice(f"maps.policies[{i}]", name, known)
     return cfg
+
+
+CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
+
+
+def compose_config(overrides: list[str] | tuple[str, ...] = ()) -> Config:
+    """The validated config that ``conf/config.yaml`` plus ``overrides`` composes to.
+
+    Works inside a running Hydra app (which has already initialised Hydra) and outside one.
+    """
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    register_configs()
+    if GlobalHydra.instance().is_initialized():
+        return to_config(compose(config_name="config", overrides=list(overrides)))
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return to_config(compose(config_name="config", overrides=list(overrides)))
 
 
 def to_config(cfg: DictConfig | Config) -> Config:

@@ -7,7 +7,8 @@
    ``results/policies/<name>/policy.pt`` if it exists, else train it in a subprocess
    (``python -m fleet_torchrl.train``) whose Hydra run directory is
    ``outputs/table/train_<name>``; an interrupted ``make table`` resumes those runs from their
-   checkpoints.
+   checkpoints. A checkpoint of another configuration (the budgets or presets changed since)
+   is not resumed: its run directory is moved aside to ``train_<name>.stale-<time>``.
 2. Evaluate the rule, the heuristic and the learned policies with the protocol of SPEC §4 and
    common random numbers (``eval.*``, same seed for all: every comparison is paired).
 3. Write ``results/table/``: ``table.md``, ``table.csv``, ``table.json`` (rows with ``policy``,
@@ -29,10 +30,10 @@ from omegaconf import DictConfig
 
 from .agents import POLICY_FILE, load_policies
 from .cli import user_errors
-from .config import Config, register_configs, to_config
+from .config import Config, compose_config, register_configs, to_config
 from .evaluation import evaluate_with, format_table, gain_over, save_result
 from .runinfo import run_info, write_csv, write_json, write_text
-from .training import CHECKPOINT
+from .training import CHECKPOINT, checkpoint_mismatch
 
 register_configs()
 
@@ -49,10 +50,19 @@ def ensure_policy(name: str, overrides: list[str], cfg: Config) -> tuple[Path, f
         print(f"[table] reusing {policy}")
         return policy, None
     run_dir = Path(cfg.table.runs_dir) / f"train_{name}"
+    run_overrides = [*overrides, f"train.out_dir={out_dir}", f"train.device={cfg.train.device}",
+                     f"seed={cfg.seed}"]
     resume = (run_dir / CHECKPOINT).exists() and not cfg.table.retrain
-    cmd = [sys.executable, "-m", "fleet_torchrl.train", *overrides,
-           f"train.out_dir={out_dir}", f"hydra.run.dir={run_dir}", f"resume={str(resume).lower()}",
-           f"train.device={cfg.train.device}", f"seed={cfg.seed}"]
+    if resume:
+        diff = checkpoint_mismatch(run_dir / CHECKPOINT, compose_config(run_overrides))
+        if diff:
+            stale = run_dir.with_name(f"{run_dir.name}.stale-{time.strftime('%Y%m%d-%H%M%S')}")
+            run_dir.rename(stale)
+            print(f"[table] {run_dir} holds a run of another configuration "
+                  f"({'; '.join(diff[:3])}): moved to {stale}, training afresh", flush=True)
+            resume = False
+    cmd = [sys.executable, "-m", "fleet_torchrl.train", *run_overrides,
+           f"hydra.run.dir={run_dir}", f"resume={str(resume).lower()}"]
     print(f"[table] training {name}: {' '.join(cmd[2:])}", flush=True)
     t0 = time.perf_counter()
     subprocess.run(cmd, check=True)

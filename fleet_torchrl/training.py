@@ -30,6 +30,7 @@ written atomically every ``checkpoint_every`` rounds and at the end.
 from __future__ import annotations
 
 import copy
+import json
 import math
 import time
 from dataclasses import asdict
@@ -48,6 +49,47 @@ from .policies import Policy, RulePolicy
 from .runinfo import run_info, write_json
 
 CHECKPOINT = "checkpoint.ckpt"
+
+# settings a resumed run may change: they steer the run, not what it learns
+_RUN_CONTROL = {"out_dir", "device", "threads", "tensorboard", "progress", "checkpoint_every"}
+
+
+def training_fingerprint(cfg: Config) -> dict[str, Any]:
+    """The part of the config that determines what a training run computes.
+
+    Stored in every checkpoint; resuming with a different one would splice two runs.
+    """
+    train = {k: v for k, v in asdict(cfg.train).items() if k not in _RUN_CONTROL}
+    return json.loads(json.dumps({"site": asdict(cfg.site), "state": asdict(cfg.state),
+                                  "mdp": asdict(cfg.mdp), "agent": asdict(cfg.agent),
+                                  "network": asdict(cfg.network), "train": train,
+                                  "seed": cfg.seed}))
+
+
+def fingerprint_diff(old: dict[str, Any], new: dict[str, Any], prefix: str = "") -> list[str]:
+    """``key: old -> new`` for every leaf that differs."""
+    out = []
+    for k in sorted(set(old) | set(new)):
+        a, b = old.get(k), new.get(k)
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += fingerprint_diff(a, b, f"{prefix}{k}.")
+        elif a != b:
+            out.append(f"{prefix}{k}: {a!r} -> {b!r}")
+    return out
+
+
+def checkpoint_mismatch(path: str | Path, cfg: Config) -> list[str]:
+    """Why the checkpoint at ``path`` cannot continue a run of ``cfg`` (empty if it can)."""
+    from torchrl.checkpoint import Checkpoint, CheckpointError
+
+    try:
+        meta = Checkpoint.manifest(path).get("metadata") or {}
+    except (CheckpointError, OSError, ValueError, KeyError) as e:
+        return [f"unreadable checkpoint ({e})"]
+    stored = meta.get("config")
+    if stored is None:
+        return ["the checkpoint records no configuration (written by an older version)"]
+    return fingerprint_diff(stored, training_fingerprint(cfg))
 
 
 def better(result: dict[str, Any], best: list[float] | None) -> bool:
@@ -150,12 +192,20 @@ class Trainer:
 
     def save_checkpoint(self) -> None:
         self.progress["env_episodes"] = self.env._episodes.tolist()
-        self.checkpoint.save(self.checkpoint_path, metadata={"run": self.name})
+        self.checkpoint.save(self.checkpoint_path,
+                             metadata={"run": self.name,
+                                       "config": training_fingerprint(self.cfg)})
 
     def load_checkpoint(self) -> bool:
         if not self.checkpoint_path.exists():
             return False
         from torchrl.checkpoint import CheckpointError
+
+        diff = checkpoint_mismatch(self.checkpoint_path, self.cfg)
+        if diff:
+            raise ValueError(f"cannot resume from {self.checkpoint_path}: it belongs to another "
+                             f"configuration ({'; '.join(diff[:5])}); resume with the same "
+                             "settings or start a new run directory")
 
         try:
             self.checkpoint.load(self.checkpoint_path, map_location=self.device)

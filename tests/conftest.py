@@ -1,22 +1,17 @@
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 
-from fleet_torchrl.config import Config, SiteConfig, register_configs, to_config
+from fleet_torchrl.config import CONF_DIR, Config, SiteConfig, compose_config
 from fleet_torchrl.sim import Site, SiteState
 
-CONF = Path(__file__).resolve().parents[1] / "conf"
-register_configs()
+CONF = CONF_DIR
 
 
 def make_cfg(overrides: list[str] | tuple[str, ...] = ()) -> Config:
     """The validated config composed from conf/ with Hydra overrides."""
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        return to_config(compose(config_name="config", overrides=list(overrides)))
+    return compose_config(overrides)
 
 
 def make_state(vehicles: list[tuple[int, float] | tuple[int, float, int]], charge: bool = False,

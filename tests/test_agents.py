@@ -184,6 +184,18 @@ def test_tabular_resume_ends_where_an_uninterrupted_run_does(tmp_path):
     assert [h["trips"] for h in s_res["history"]] == [h["trips"] for h in s_full["history"]]
 
 
+def test_resume_with_another_config_is_refused(tmp_path):
+    tiny = [*TINY_TAB, "train.max_episodes=64"]
+    _train(tiny, tmp_path, stop_after=1)
+    ckpt = tmp_path / "checkpoint.ckpt"
+    assert ckpt.exists()
+    with pytest.raises(ValueError, match=r"another configuration \(mdp.r_trip: 0.0 -> 1.0\)"):
+        _train([*tiny, "mdp.r_trip=1.0"], tmp_path, resume=True)
+    # run-control settings may change on resume; the checkpoint is untouched by the refusal
+    _, summary = _train([*tiny, "train.checkpoint_every=2"], tmp_path, resume=True)
+    assert summary["resumed"] and summary["rounds"] == 2
+
+
 @pytest.mark.slow
 def test_dqn_training_and_resume(tmp_path):
     full, s_full = _train(TINY_DQN, tmp_path / "a")

@@ -45,6 +45,14 @@ def test_table_end_to_end(tmp_path):
     mtime = (tmp_path / "policies" / "tabular" / "policy.pt").stat().st_mtime
     run(cfg)
     assert (tmp_path / "policies" / "tabular" / "policy.pt").stat().st_mtime == mtime
+    # a missing policy whose run directory holds a checkpoint of other settings is trained
+    # afresh; the old run is kept aside, not resumed into the new one
+    (tmp_path / "policies" / "tabular" / "policy.pt").unlink()
+    cfg.table.train = {"tabular": [*cfg.table.train["tabular"], "agent.k=50"]}
+    run(cfg)
+    assert (tmp_path / "policies" / "tabular" / "policy.pt").exists()
+    stale = list((tmp_path / "runs").glob("train_tabular.stale-*"))
+    assert len(stale) == 1 and (stale[0] / "checkpoint.ckpt").exists()
 
 
 def test_grid_config_composes_with_a_real_grid():
