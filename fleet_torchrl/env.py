@@ -7,7 +7,9 @@ reaches ``D`` (a new decision), the site fails (``terminated``) or the episode's
 this step is frozen (it does not advance) while the others go on.
 
 Reward: the mean cost of the ticks of the step, a tick costing ``-p_f`` if the site failed in
-it, else ``-p_q`` if it was a queue tick, else 0.
+it, else ``-p_q`` if it was a queue tick, else 0. With ``mdp.r_trip > 0`` (an extension,
+0 by default) a tick in which a trip is completed also earns ``+r_trip``; every step that
+does not end the episode ends with one trip, so the term is ``r_trip / (ticks in the step)``.
 
 Every site's episode ``k`` uses site index ``k * B + b`` in the common random numbers of
 :mod:`fleet_torchrl.rng` under ``rng.training_seed(seed)``, so the whole stream of initial

@@ -8,7 +8,8 @@
    (``python -m fleet_torchrl.train``) whose Hydra run directory is
    ``outputs/table/train_<name>``; an interrupted ``make table`` resumes those runs from their
    checkpoints. A checkpoint of another configuration (the budgets or presets changed since)
-   is not resumed: its run directory is moved aside to ``train_<name>.stale-<time>``.
+   or an unreadable one is not resumed: its run directory is moved aside to
+   ``train_<name>.stale-<time>``.
 2. Evaluate the rule, the heuristic and the learned policies with the protocol of SPEC §4 and
    common random numbers (``eval.*``, same seed for all: every comparison is paired).
 3. Write ``results/table/``: ``table.md``, ``table.csv``, ``table.json`` (rows with ``policy``,
@@ -54,12 +55,21 @@ def ensure_policy(name: str, overrides: list[str], cfg: Config) -> tuple[Path, f
                      f"seed={cfg.seed}"]
     resume = (run_dir / CHECKPOINT).exists() and not cfg.table.retrain
     if resume:
-        diff = checkpoint_mismatch(run_dir / CHECKPOINT, compose_config(run_overrides))
-        if diff:
-            stale = run_dir.with_name(f"{run_dir.name}.stale-{time.strftime('%Y%m%d-%H%M%S')}")
+        try:
+            diff = checkpoint_mismatch(run_dir / CHECKPOINT, compose_config(run_overrides))
+            why = f"a run of another configuration ({'; '.join(diff[:3])})" if diff else None
+        except ValueError as e:
+            why = f"an unreadable checkpoint ({e})"
+        if why:
+            stamp = time.strftime("%Y%m%d-%H%M%S")
+            stale = run_dir.with_name(f"{run_dir.name}.stale-{stamp}")
+            n = 1
+            while stale.exists():  # two in one second
+                n += 1
+                stale = run_dir.with_name(f"{run_dir.name}.stale-{stamp}-{n}")
             run_dir.rename(stale)
-            print(f"[table] {run_dir} holds a run of another configuration "
-                  f"({'; '.join(diff[:3])}): moved to {stale}, training afresh", flush=True)
+            print(f"[table] {run_dir} holds {why}: moved to {stale}, training afresh",
+                  flush=True)
             resume = False
     cmd = [sys.executable, "-m", "fleet_torchrl.train", *run_overrides,
            f"hydra.run.dir={run_dir}", f"resume={str(resume).lower()}"]

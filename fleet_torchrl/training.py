@@ -79,13 +79,16 @@ def fingerprint_diff(old: dict[str, Any], new: dict[str, Any], prefix: str = "")
 
 
 def checkpoint_mismatch(path: str | Path, cfg: Config) -> list[str]:
-    """Why the checkpoint at ``path`` cannot continue a run of ``cfg`` (empty if it can)."""
+    """Why the checkpoint at ``path`` cannot continue a run of ``cfg`` (empty if it can).
+
+    Raises ``ValueError`` if the file is not a readable checkpoint.
+    """
     from torchrl.checkpoint import Checkpoint, CheckpointError
 
     try:
         meta = Checkpoint.manifest(path).get("metadata") or {}
     except (CheckpointError, OSError, ValueError, KeyError) as e:
-        return [f"unreadable checkpoint ({e})"]
+        raise ValueError(f"cannot resume from {path}: not a readable checkpoint ({e})") from None
     stored = meta.get("config")
     if stored is None:
         return ["the checkpoint records no configuration (written by an older version)"]

@@ -3,10 +3,11 @@ from __future__ import annotations
 import pytest
 import torch
 
-from fleet_torchrl.config import CONF_DIR, Config, SiteConfig, compose_config
+from fleet_torchrl.config import CONF_DIR, Config, SiteConfig, compose_config, register_configs
 from fleet_torchrl.sim import Site, SiteState
 
 CONF = CONF_DIR
+register_configs()  # tests that call Hydra's compose directly need the schemas
 
 
 def make_cfg(overrides: list[str] | tuple[str, ...] = ()) -> Config:

@@ -194,6 +194,9 @@ def test_resume_with_another_config_is_refused(tmp_path):
     # run-control settings may change on resume; the checkpoint is untouched by the refusal
     _, summary = _train([*tiny, "train.checkpoint_every=2"], tmp_path, resume=True)
     assert summary["resumed"] and summary["rounds"] == 2
+    ckpt.write_bytes(b"garbage")
+    with pytest.raises(ValueError, match="not a readable checkpoint"):
+        _train(tiny, tmp_path, resume=True)
 
 
 @pytest.mark.slow

@@ -61,6 +61,7 @@ def test_site_variants():
     ("mdp.r_trip=-1", "mdp.r_trip"),
     ("agent=dqn network.grad_clip=-1", "network.grad_clip"),
     ("objective.n_sites=0", "objective.n_sites"),
+    ("objective.seed=-1", "objective.seed"),
     ("eval.n_sims=0", "eval.n_sims"),
     ("eval.device=gpu0", "eval.device"),
 ])

@@ -53,6 +53,12 @@ def test_table_end_to_end(tmp_path):
     assert (tmp_path / "policies" / "tabular" / "policy.pt").exists()
     stale = list((tmp_path / "runs").glob("train_tabular.stale-*"))
     assert len(stale) == 1 and (stale[0] / "checkpoint.ckpt").exists()
+    # an unreadable checkpoint is set aside the same way (nothing is deleted)
+    (tmp_path / "policies" / "tabular" / "policy.pt").unlink()
+    (tmp_path / "runs" / "train_tabular" / "checkpoint.ckpt").write_bytes(b"garbage")
+    run(cfg)
+    assert (tmp_path / "policies" / "tabular" / "policy.pt").exists()
+    assert len(list((tmp_path / "runs").glob("train_tabular.stale-*"))) == 2
 
 
 def test_grid_config_composes_with_a_real_grid():
