@@ -70,14 +70,11 @@ def candidate_policies(cfg: Config) -> dict[str, Policy]:
         pols[f"heuristic_{upper:g}"] = HeuristicPolicy(40.0, upper)
     # early charging only while another vehicle is at most 75: as little queueing, more trips
     pols["heuristic_65_75"] = HeuristicPolicy(40.0, 65.0, others_below=75.0)
-    from .agents import load_policy_file
+    from .agents import POLICY_FILE, load_policies
 
     root = Path(cfg.table.policies_dir)
-    for name in cfg.table.train:
-        path = root / name / "policy.pt"
-        if path.is_file():
-            pols[name] = load_policy_file(path)
-    return pols
+    saved = [name for name in cfg.table.train if (root / name / POLICY_FILE).is_file()]
+    return {**pols, **load_policies(cfg, saved)}
 
 
 def score_table(scores: dict[str, dict[str, float]]) -> str:

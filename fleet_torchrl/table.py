@@ -42,6 +42,17 @@ ROW_KEYS = ("policy", "trips_mean", "trips_std", "queue_mean", "queue_std", "fai
             "gain_pct", "gain_ci95", "gain_vs_heuristic_pct", "gain_vs_heuristic_ci95")
 
 
+def set_aside(run_dir: Path) -> Path:
+    """Rename ``run_dir`` to a free ``<name>.stale-<time>[-n]`` beside it; returns the new path."""
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    stale = run_dir.with_name(f"{run_dir.name}.stale-{stamp}")
+    n = 1
+    while stale.exists():  # two in one second
+        n += 1
+        stale = run_dir.with_name(f"{run_dir.name}.stale-{stamp}-{n}")
+    return run_dir.rename(stale)
+
+
 def ensure_policy(name: str, overrides: list[str], cfg: Config) -> tuple[Path, float | None]:
     """Path of the saved policy ``name``, training it first if needed; returns (path, seconds)."""
     out_dir = Path(cfg.table.policies_dir) / name
@@ -61,13 +72,7 @@ def ensure_policy(name: str, overrides: list[str], cfg: Config) -> tuple[Path, f
         except ValueError as e:
             why = f"an unreadable checkpoint ({e})"
         if why:
-            stamp = time.strftime("%Y%m%d-%H%M%S")
-            stale = run_dir.with_name(f"{run_dir.name}.stale-{stamp}")
-            n = 1
-            while stale.exists():  # two in one second
-                n += 1
-                stale = run_dir.with_name(f"{run_dir.name}.stale-{stamp}-{n}")
-            run_dir.rename(stale)
+            stale = set_aside(run_dir)
             print(f"[table] {run_dir} holds {why}: moved to {stale}, training afresh",
                   flush=True)
             resume = False

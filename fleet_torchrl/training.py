@@ -30,7 +30,6 @@ written atomically every ``checkpoint_every`` rounds and at the end.
 from __future__ import annotations
 
 import copy
-import json
 import math
 import time
 from dataclasses import asdict
@@ -46,7 +45,7 @@ from .evaluation import evaluate_policy, gain_over
 from .monitor import Monitor
 from .plotting import TC_DQN, TC_TABULAR, plot_policy_map
 from .policies import Policy, RulePolicy
-from .runinfo import run_info, write_json
+from .runinfo import run_info, to_jsonable, write_json
 
 CHECKPOINT = "checkpoint.ckpt"
 
@@ -60,10 +59,9 @@ def training_fingerprint(cfg: Config) -> dict[str, Any]:
     Stored in every checkpoint; resuming with a different one would splice two runs.
     """
     train = {k: v for k, v in asdict(cfg.train).items() if k not in _RUN_CONTROL}
-    return json.loads(json.dumps({"site": asdict(cfg.site), "state": asdict(cfg.state),
-                                  "mdp": asdict(cfg.mdp), "agent": asdict(cfg.agent),
-                                  "network": asdict(cfg.network), "train": train,
-                                  "seed": cfg.seed}))
+    return to_jsonable({"site": cfg.site, "state": cfg.state, "mdp": cfg.mdp,
+                        "agent": cfg.agent, "network": cfg.network, "train": train,
+                        "seed": cfg.seed})
 
 
 def fingerprint_diff(old: dict[str, Any], new: dict[str, Any], prefix: str = "") -> list[str]:
