@@ -124,6 +124,18 @@ def package_versions() -> dict[str, str | None]:
     return dict(_package_versions())
 
 
+def machine_info() -> dict[str, Any]:
+    """The machine a result was made on: platform, processor and CPU count."""
+    return {"platform": platform.platform(), "processor": platform.machine(),
+            "cpus": os.cpu_count()}
+
+
+def machine_summary() -> str:
+    """:func:`machine_info` in one line, e.g. ``x86_64, 2 CPUs, Linux-...``."""
+    m = machine_info()
+    return f"{m['processor']}, {m['cpus']} CPUs, {m['platform']}"
+
+
 def run_info(config: Any = None, seed: int | None = None) -> dict[str, Any]:
     """Provenance: time, command line, git commit, versions, machine, config and seed."""
     info = {
@@ -132,8 +144,7 @@ def run_info(config: Any = None, seed: int | None = None) -> dict[str, Any]:
         "git_commit": git_commit(),
         "python": platform.python_version(),
         "packages": package_versions(),
-        "machine": {"platform": platform.platform(), "processor": platform.machine(),
-                    "cpus": os.cpu_count()},
+        "machine": machine_info(),
     }
     if seed is not None:
         info["seed"] = seed

@@ -6,15 +6,13 @@ Runs CMD, then records its wall time, exit code and the machine in ``results/tim
 
 from __future__ import annotations
 
-import os
-import platform
 import subprocess
 import sys
 import time
 from datetime import UTC, datetime
 from pathlib import Path
 
-from .runinfo import read_json, write_json
+from .runinfo import machine_summary, read_json, write_json
 
 TIMINGS = Path("results/timings.json")
 
@@ -31,8 +29,7 @@ def main(argv: list[str] | None = None) -> int:
     timings = read_json(TIMINGS) if TIMINGS.exists() else {}
     timings[step] = {"wall_s": round(wall, 1), "exit_code": rc,
                      "finished": datetime.now(UTC).isoformat(timespec="seconds"),
-                     "machine": f"{platform.machine()}, {os.cpu_count()} CPUs, "
-                                f"{platform.platform()}"}
+                     "machine": machine_summary()}
     write_json(TIMINGS, timings)
     print(f"[timing] {step}: {wall:.0f} s (exit {rc})")
     return rc
