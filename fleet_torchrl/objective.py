@@ -24,6 +24,7 @@ import hydra
 import torch
 from omegaconf import DictConfig
 
+from .agents import POLICY_FILE, load_policies
 from .cli import user_errors
 from .config import Config, MDPConfig, SiteConfig, register_configs, to_config
 from .env import FleetChargingEnv
@@ -70,8 +71,6 @@ def candidate_policies(cfg: Config) -> dict[str, Policy]:
         pols[f"heuristic_{upper:g}"] = HeuristicPolicy(40.0, upper)
     # early charging only while another vehicle is at most 75: as little queueing, more trips
     pols["heuristic_65_75"] = HeuristicPolicy(40.0, 65.0, others_below=75.0)
-    from .agents import POLICY_FILE, load_policies
-
     root = Path(cfg.table.policies_dir)
     saved = [name for name in cfg.table.train if (root / name / POLICY_FILE).is_file()]
     return {**pols, **load_policies(cfg, saved)}

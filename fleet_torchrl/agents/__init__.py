@@ -15,7 +15,7 @@ from typing import Any
 import torch
 
 from ..config import Config, NetworkConfig
-from ..policies import Policy
+from ..policies import HeuristicPolicy, Policy, RulePolicy
 from ..runinfo import atomic_write
 
 FORMAT = "fleet_torchrl.policy/1"
@@ -93,10 +93,8 @@ def load_policy(cfg: Config) -> Policy:
 
 
 def load_policies(cfg: Config, names: list[str]) -> dict[str, Policy]:
-    """Policies by name: ``rule`` and ``heuristic`` from ``cfg.agent``'s defaults, learned ones
+    """Policies by name: ``rule`` and ``heuristic`` with their default parameters, learned ones
     from ``cfg.table.policies_dir/<name>/policy.pt``."""
-    from ..policies import HeuristicPolicy, RulePolicy
-
     out: dict[str, Policy] = {}
     for name in names:
         if name == "rule":
