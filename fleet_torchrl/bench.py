@@ -14,53 +14,14 @@ from __future__ import annotations
 
 import argparse
 import platform
-import statistics
-import time
 
 import torch
 
-from .config import SiteConfig
+from .agents import RulePolicy
 from .evaluation import simulate
-from .policies import RulePolicy, as_td_module
-from .runinfo import package_versions, write_json
-from .sim import Site
-
-
-def _median_time(fn, repeats: int) -> float:
-    fn()  # warm-up
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
-
-
-@torch.inference_mode()
-def bench_sim(b: int, ticks: int, repeats: int, device: str) -> float:
-    site = Site(SiteConfig(), device)
-    idx = torch.arange(b, device=device)
-    closed = site.closures(0, idx, torch.arange(ticks, device=device)[:, None])
-
-    def run():
-        s, _ = site.init_state(0, idx)
-        for t in range(ticks):
-            site.tick(s, closed[t])
-
-    return _median_time(run, repeats)
-
-
-def bench_eval(b: int, ticks: int, repeats: int, device: str) -> float:
-    return _median_time(lambda: simulate(RulePolicy(), SiteConfig(), b, ticks, 0, device),
-                        repeats)
-
-
-def bench_env(b: int, steps: int, repeats: int, device: str) -> float:
-    from .env import FleetChargingEnv
-
-    env = FleetChargingEnv(num_sites=b, device=device)
-    policy = as_td_module(RulePolicy())
-    return _median_time(lambda: env.rollout(steps, policy, break_when_any_done=False), repeats)
+from .experiments.bench import bench_env, bench_eval, bench_sim, median_time
+from .sim import SiteConfig
+from .utils.runinfo import package_versions, write_json
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -94,7 +55,7 @@ def main(argv: list[str] | None = None) -> dict:
     result = {"machine": {"platform": platform.platform(), "cpus": torch.get_num_threads(),
                           "device": a.device}, "packages": package_versions(), "rows": rows}
     if not a.skip_protocol:
-        t = _median_time(lambda: simulate(RulePolicy(), SiteConfig(), 1000, 10_000, 0, a.device),
+        t = median_time(lambda: simulate(RulePolicy(), SiteConfig(), 1000, 10_000, 0, a.device),
                          max(1, a.repeats // 2 + 1))
         result["protocol_1000x10000_s"] = t
         print(f"thesis protocol (rule, 1000 sims x 10 000 ticks): {t:.2f} s "

@@ -11,8 +11,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from .cli import user_errors
 from .evaluation import compare
+from .utils.cli import user_errors
 
 
 def main(argv: list[str] | None = None) -> int:

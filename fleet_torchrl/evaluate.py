@@ -15,23 +15,13 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from .cli import user_errors
+from .agents import make_policy
 from .config import Config, register_configs, to_config
 from .evaluation import evaluate_with, format_table, save_result
-from .policies import Policy, build_baseline
-from .runinfo import run_info
+from .utils.cli import user_errors
+from .utils.runinfo import run_info
 
 register_configs()
-
-
-def make_policy(cfg: Config) -> Policy:
-    """The policy named by ``cfg.agent`` (baselines from config, learned ones from disk)."""
-    name = cfg.agent.name
-    if name in ("rule", "heuristic"):
-        return build_baseline(cfg.agent)
-    from .agents import load_policy  # learned agents (tabular, dqn)
-
-    return load_policy(cfg)
 
 
 def run(cfg: Config, out: str | Path | None) -> dict:
@@ -48,7 +38,7 @@ def run(cfg: Config, out: str | Path | None) -> dict:
     return result
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="config")
+@hydra.main(version_base="1.3", config_path="conf", config_name="config")
 def main(dcfg: DictConfig) -> None:
     with user_errors():
         cfg = to_config(dcfg)

@@ -21,73 +21,17 @@ from __future__ import annotations
 from pathlib import Path
 
 import hydra
-import torch
 from omegaconf import DictConfig
 
-from .agents import POLICY_FILE, load_policies
-from .cli import user_errors
-from .config import Config, MDPConfig, SiteConfig, register_configs, to_config
-from .env import FleetChargingEnv
-from .policies import HeuristicPolicy, Policy, RulePolicy
-from .runinfo import run_info, write_json, write_text
+from .config import register_configs, to_config
+from .experiments.objective import candidate_policies, mdp_score, score_table
+from .utils.cli import user_errors
+from .utils.runinfo import run_info, write_json, write_text
 
 register_configs()
 
 
-@torch.no_grad()
-def mdp_score(policy: Policy, site_cfg: SiteConfig, mdp_cfg: MDPConfig, n_sites: int = 200,
-              seed: int = 7, device: str | torch.device = "cpu") -> dict[str, float]:
-    """One episode per site: mean reward per decision, trips, queue ticks, failure rate."""
-    env = FleetChargingEnv(site_cfg, policy.encoding, n_sites, mdp_cfg, seed=seed, device=device)
-    policy = policy.to(env.device).eval()
-    td = env.reset()
-    reward = torch.zeros(n_sites, device=env.device)
-    steps = torch.zeros(n_sites, device=env.device)
-    done = torch.zeros(n_sites, dtype=torch.bool, device=env.device)
-    trips = torch.zeros(n_sites, device=env.device)
-    queue = torch.zeros_like(trips)
-    failed = torch.zeros_like(done)
-    while not bool(done.all()):
-        nxt = env.step(td.set("action", policy(td["observation"])))["next"]
-        live = ~done
-        reward += nxt["reward"].squeeze(-1) * live
-        steps += live
-        # counters of a finished site are frozen at its episode's end
-        trips = torch.where(live, nxt["trips"].squeeze(-1).float(), trips)
-        queue = torch.where(live, nxt["queue_ticks"].squeeze(-1).float(), queue)
-        failed |= live & nxt["terminated"].squeeze(-1)
-        done |= nxt["done"].squeeze(-1)
-        td = nxt.clone()
-    return {"reward_per_decision": float(reward.sum() / steps.sum()),
-            "decisions": float(steps.mean()), "trips": float(trips.mean()),
-            "queue": float(queue.mean()), "failure_rate": float(failed.float().mean())}
-
-
-def candidate_policies(cfg: Config) -> dict[str, Policy]:
-    """Rule, heuristic family, and the learned policies saved under ``table.policies_dir``."""
-    pols: dict[str, Policy] = {"rule": RulePolicy(cfg.agent.threshold
-                                                  if cfg.agent.name == "rule" else 40.0)}
-    for upper in (50.0, 60.0, 65.0, 70.0, 80.0):
-        pols[f"heuristic_{upper:g}"] = HeuristicPolicy(40.0, upper)
-    # early charging only while another vehicle is at most 75: as little queueing, more trips
-    pols["heuristic_65_75"] = HeuristicPolicy(40.0, 65.0, others_below=75.0)
-    root = Path(cfg.table.policies_dir)
-    saved = [name for name in cfg.table.train if (root / name / POLICY_FILE).is_file()]
-    return {**pols, **load_policies(cfg, saved)}
-
-
-def score_table(scores: dict[str, dict[str, float]]) -> str:
-    base = scores["rule"]["trips"]
-    lines = ["| policy | reward / decision | trips | gain vs rule | queue ticks | failures |",
-             "|---|---:|---:|---:|---:|---:|"]
-    for name, s in sorted(scores.items(), key=lambda kv: -kv[1]["reward_per_decision"]):
-        lines.append(f"| {name} | {s['reward_per_decision']:.5f} | {s['trips']:.1f} | "
-                     f"{(s['trips'] / base - 1) * 100:+.2f} % | {s['queue']:.1f} | "
-                     f"{s['failure_rate']:.3f} |")
-    return "\n".join(lines)
-
-
-@hydra.main(version_base="1.3", config_path="../conf", config_name="config")
+@hydra.main(version_base="1.3", config_path="conf", config_name="config")
 def main(dcfg: DictConfig) -> None:
     with user_errors():
         cfg = to_config(dcfg)

@@ -8,32 +8,17 @@ and busy for the rule, the heuristic and the tabular agent (which only sees TC >
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import hydra
 from omegaconf import DictConfig
 
-from .agents import load_policies
-from .cli import user_errors
-from .config import Config, register_configs, to_config
-from .plotting import TC_DQN, TC_TABULAR, plot_policy_map, save_figure
+from .config import register_configs, to_config
+from .experiments.policy_maps import run
+from .utils.cli import user_errors
 
 register_configs()
 
 
-def run(cfg: Config) -> list[Path]:
-    out = Path(cfg.maps.out)
-    paths = []
-    for name, pol in load_policies(cfg, cfg.maps.policies).items():
-        pol = pol.cpu()
-        tcs = TC_DQN if name.startswith("dqn") else TC_TABULAR
-        fig = plot_policy_map(pol, tcs, title=f"{name}: charge (orange) / pass, by TC")
-        paths.append(save_figure(fig, out / f"{name}.png"))
-        print(f"[policy-maps] {paths[-1]}")
-    return paths
-
-
-@hydra.main(version_base="1.3", config_path="../conf", config_name="config")
+@hydra.main(version_base="1.3", config_path="conf", config_name="config")
 def main(dcfg: DictConfig) -> None:
     with user_errors():
         run(to_config(dcfg))

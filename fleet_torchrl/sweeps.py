@@ -17,65 +17,19 @@ from __future__ import annotations
 
 import sys
 import traceback
-from dataclasses import replace
-from pathlib import Path
-from typing import Any
 
 import hydra
 from omegaconf import DictConfig
 
-from .agents import load_policies
-from .cli import user_errors
-from .config import Config, register_configs, to_config, validate_site
-from .evaluation import evaluate_with, gain_over
-from .runinfo import run_info, write_json, write_text
+from .config import register_configs, to_config
+from .experiments.sweeps import point_path, run_point
+from .utils.cli import user_errors
+from .utils.runinfo import write_text
 
 register_configs()
 
-POINT_FIELDS = ("param", "value", "policy", "trips_mean", "trips_std", "queue_mean",
-                "failure_rate", "gain_pct", "gain_ci95")
 
-
-def point_value(param: str, value: float) -> float | int:
-    return int(round(value)) if param in ("t_c", "n_vehicles") else float(value)
-
-
-def point_path(cfg: Config) -> Path:
-    v = point_value(cfg.sweep.param, cfg.sweep.value)
-    return Path(cfg.sweep.out) / cfg.sweep.name / f"{cfg.sweep.param}={v}.json"
-
-
-def run_point(cfg: Config) -> list[dict[str, Any]] | None:
-    """Evaluate all policies at this job's point; returns the rows (None if already done)."""
-    path = point_path(cfg)
-    if path.exists():
-        print(f"[sweep] {path} exists, skipping")
-        return None
-    param = cfg.sweep.param
-    value = point_value(param, cfg.sweep.value)
-    site = validate_site(replace(cfg.site, **{param: value}, name=f"{param}={value}"))
-    e = cfg.eval
-    results = {name: evaluate_with(pol, site, e, name=name)
-               for name, pol in load_policies(cfg, cfg.sweep.policies).items()}
-    rule = results.get("rule")
-    rows = []
-    for name, res in results.items():
-        g = gain_over(res, rule) if rule is not None else {"gain_pct": None, "gain_ci95": None}
-        rows.append({"param": param, "value": value, "policy": name,
-                     **{k: res[k] for k in ("trips_mean", "trips_std", "queue_mean",
-                                            "failure_rate")},
-                     "gain_pct": g["gain_pct"], "gain_ci95": g["gain_ci95"]})
-    write_json(path, {"rows": rows, "site": site, "meta": run_info(cfg, seed=e.seed)})
-    err = path.with_suffix(".error")
-    if err.exists():
-        err.unlink()
-    for r in rows:
-        gain = f", gain {r['gain_pct']:+.2f} %" if r["gain_pct"] is not None else ""
-        print(f"[sweep] {param}={value} {r['policy']}: {r['trips_mean']:.1f} trips{gain}")
-    return rows
-
-
-@hydra.main(version_base="1.3", config_path="../conf", config_name="config")
+@hydra.main(version_base="1.3", config_path="conf", config_name="config")
 def main(dcfg: DictConfig) -> None:
     with user_errors():
         cfg = to_config(dcfg)

@@ -11,33 +11,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from .cli import user_errors
-from .plotting import plot_sweep, save_figure
-from .runinfo import read_json, write_csv, write_json
-from .sweeps import POINT_FIELDS
-
-
-def summarize(name: str, out: Path, expect: list[str] | None = None) -> dict:
-    folder = out / name
-    if not folder.is_dir():
-        raise FileNotFoundError(f"no sweep results in {folder}; run `make sweep-{name}` first")
-    rows, done = [], []
-    for f in sorted(folder.glob("*.json")):
-        rows += read_json(f)["rows"]
-        done.append(f.stem)
-    failed = sorted(f.stem for f in folder.glob("*.error"))
-    missing = [v for v in (expect or []) if v not in done and v not in failed]
-    if not rows:
-        raise FileNotFoundError(f"no finished point in {folder}")
-    param = rows[0]["param"]
-    rows.sort(key=lambda r: (r["value"], r["policy"]))
-    write_csv(out / f"{name}.csv", rows, POINT_FIELDS)
-    summary = {"sweep": name, "param": param, "rows": rows, "failed": failed,
-               "missing": missing}
-    write_json(out / f"{name}.json", summary)
-    fig = plot_sweep(rows, param, f"sweep {name}: policies trained on the default site")
-    save_figure(fig, out / f"{name}.png")
-    return summary
+from .experiments.sweeps_summary import summarize
+from .utils.cli import user_errors
 
 
 def main(argv: list[str] | None = None) -> int:

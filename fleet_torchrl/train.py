@@ -18,16 +18,15 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from .cli import user_errors
 from .config import Config, register_configs, to_config
-from .runinfo import run_info, write_json
+from .training import Trainer
+from .utils.cli import user_errors
+from .utils.runinfo import run_info, write_json
 
 register_configs()
 
 
 def train(cfg: Config, run_dir: str | Path) -> dict:
-    from .training import Trainer
-
     if cfg.train.threads:
         import torch
 
@@ -43,7 +42,7 @@ def train(cfg: Config, run_dir: str | Path) -> dict:
     return summary
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="config")
+@hydra.main(version_base="1.3", config_path="conf", config_name="config")
 def main(dcfg: DictConfig) -> float:
     with user_errors():
         cfg = to_config(dcfg)

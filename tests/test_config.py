@@ -6,13 +6,12 @@ import subprocess
 import sys
 
 import pytest
-from conftest import CONF, make_cfg
 
-from fleet_torchrl.config import Config, ConfigError
+from fleet_torchrl.config import CONF_DIR, Config, ConfigError, compose_config
 
 
 def group_options(group: str) -> list[str]:
-    return sorted(p.stem for p in (CONF / group).glob("*.yaml"))
+    return sorted(p.stem for p in (CONF_DIR / group).glob("*.yaml"))
 
 
 @pytest.mark.parametrize("group", ["site", "state", "agent", "eval", "mdp"])
@@ -20,12 +19,12 @@ def test_every_option_composes_and_validates(group):
     options = group_options(group)
     assert options, f"conf/{group} is empty"
     for opt in options:
-        cfg = make_cfg([f"{group}={opt}"])
+        cfg = compose_config([f"{group}={opt}"])
         assert isinstance(cfg, Config)
 
 
 def test_defaults_are_the_spec_values():
-    cfg = make_cfg([])
+    cfg = compose_config([])
     s = cfg.site
     assert (s.n_nodes, s.n_vehicles, s.p_c, s.t_c, s.soc_low) == (15, 3, 0.8, 30, 30.0)
     assert (s.e_move, s.e_idle, s.e_charge, s.closed_node, s.xi) == (0.5, 0.02, 40.0, 9, 10.0)
@@ -36,9 +35,9 @@ def test_defaults_are_the_spec_values():
 
 
 def test_site_variants():
-    assert make_cfg(["site=five_vehicles"]).site.n_vehicles == 5
-    assert make_cfg(["site=no_closure"]).site.p_c == 0.0
-    slow = make_cfg(["site=slow_charger"]).site
+    assert compose_config(["site=five_vehicles"]).site.n_vehicles == 5
+    assert compose_config(["site=no_closure"]).site.p_c == 0.0
+    slow = compose_config(["site=slow_charger"]).site
     assert slow.t_c == 50 and slow.e_charge == 40.0
 
 
@@ -67,7 +66,7 @@ def test_site_variants():
 ])
 def test_bad_values_name_the_field(override, field):
     with pytest.raises(ConfigError) as e:
-        make_cfg(override.split())
+        compose_config(override.split())
     msg = str(e.value)
     assert msg.startswith(f"{field}=") and "allowed" in msg and "\n" not in msg
 
@@ -76,9 +75,9 @@ def test_typos_and_wrong_types_are_rejected_by_the_schema():
     from omegaconf.errors import ConfigKeyError, ValidationError
 
     with pytest.raises((ConfigKeyError, Exception)):
-        make_cfg(["site.n_vehicle=3"])
+        compose_config(["site.n_vehicle=3"])
     with pytest.raises((ValidationError, Exception)):
-        make_cfg(["site.n_vehicles=three"])
+        compose_config(["site.n_vehicles=three"])
 
 
 def test_cli_reports_one_line_error_and_exit_code():

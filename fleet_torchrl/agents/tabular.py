@@ -11,10 +11,44 @@ the first of them -- the sequential rule up to the order of simultaneous visits.
 
 from __future__ import annotations
 
-import torch
-from torch import Tensor, nn
+from dataclasses import dataclass
+from typing import Any
 
-from ..policies import Policy
+import torch
+from tensordict import TensorDictBase
+from torch import Tensor
+
+from ..utils.checks import check_range
+from .base import AgentConfig, Learner, Policy
+
+
+@dataclass
+class TabularAgentConfig(AgentConfig):
+    """Tabular Q-learning on the discretised ``partial`` state (SPEC §3)."""
+
+    name: str = "tabular"
+    num_sites: int = 64  # sites simulated in parallel; one round = one episode per site
+    k: float = 100.0  # learning rate k / (t + k), t = visits of the state-action pair
+    eps_start: float = 1.0  # epsilon of the first episode
+    eps_end: float = 0.3  # epsilon_min
+    eps_decay_episodes: int = 40  # episodes (per site) over which epsilon decays to eps_end
+    policy: str | None = None  # saved policy for evaluation (default results/policies/tabular)
+
+    def validate(self, cfg: Any = None, path: str = "agent") -> TabularAgentConfig:
+        check_range(f"{path}.num_sites", self.num_sites, 1, 1_000_000)
+        check_range(f"{path}.k", self.k, 1e-9, None, allowed="> 0")
+        check_range(f"{path}.eps_start", self.eps_start, 0.0, 1.0)
+        check_range(f"{path}.eps_end", self.eps_end, 0.0, self.eps_start,
+                    allowed=f"[0, eps_start = {self.eps_start}]")
+        check_range(f"{path}.eps_decay_episodes", self.eps_decay_episodes, 1, None)
+        return self
+
+    def epsilon(self, round_idx: int) -> float:
+        """Epsilon of round (= episode per site) ``round_idx``: exponential decay to eps_end."""
+        if self.eps_end <= 0.0:
+            return self.eps_start if round_idx == 0 else 0.0
+        return max(self.eps_end, self.eps_start * (self.eps_end / self.eps_start)
+                   ** (round_idx / self.eps_decay_episodes))
 
 N_SOC_BINS = 10
 N_STATES = N_SOC_BINS * N_SOC_BINS * 2
@@ -46,33 +80,72 @@ class TabularQPolicy(Policy):
         return self.q_values(obs).argmax(-1)
 
 
-class TabularLearner(nn.Module):
-    """Q-learning updates and epsilon-greedy behaviour around a :class:`TabularQPolicy`."""
+class TabularLearner(Learner):
+    """Q-learning updates and epsilon-greedy behaviour around a :class:`TabularQPolicy`.
 
-    def __init__(self, k: float = 100.0, gamma: float = 0.9) -> None:
+    A round plays one episode per site (``steps_per_round = None``) and updates the table
+    online after every environment step.
+    """
+
+    steps_per_round = None
+
+    def __init__(self, k: float = 100.0, gamma: float = 0.9,
+                 agent: TabularAgentConfig | None = None) -> None:
         super().__init__()
-        self.policy = TabularQPolicy()
+        self.table = TabularQPolicy()
         self.k = float(k)
         self.gamma = float(gamma)
+        self.agent = agent or TabularAgentConfig()
+        self.eps = self.agent.eps_start
+        self._td_sum, self._td_n = 0.0, 0
 
-    def act(self, obs: Tensor, eps: float, generator: torch.Generator | None = None) -> Tensor:
-        greedy = self.policy(obs)
+    # ------------------------------------------------------------------ Learner
+    def policy(self) -> TabularQPolicy:
+        return self.table
+
+    def exploration(self) -> float:
+        return self.eps
+
+    def start_round(self, round_idx: int) -> None:
+        self.eps = self.agent.epsilon(round_idx)
+
+    def act(self, td: TensorDictBase) -> TensorDictBase:
+        return td.set("action", self.explore(td["observation"], self.eps))
+
+    def observe(self, td: TensorDictBase, learn: Tensor) -> None:
+        nxt = td["next"]
+        self._td_sum += self.update_q(td["observation"], td["action"],
+                                      nxt["reward"].squeeze(-1), nxt["observation"],
+                                      nxt["terminated"].squeeze(-1), learn)
+        self._td_n += 1
+
+    def update(self) -> dict[str, float]:
+        """Tabular learning is online (in :meth:`observe`); reports the round's mean |TD|."""
+        out = {"loss/td": self._td_sum / max(self._td_n, 1)}
+        self._td_sum, self._td_n = 0.0, 0
+        return out
+
+    # ------------------------------------------------------------------ Q-learning
+    def explore(self, obs: Tensor, eps: float,
+                generator: torch.Generator | None = None) -> Tensor:
+        """Epsilon-greedy actions for ``[B, 3]`` observations."""
+        greedy = self.table(obs)
         u = torch.rand(greedy.shape, generator=generator, device=obs.device)
         rand = torch.randint(0, 2, greedy.shape, generator=generator, device=obs.device)
         return torch.where(u < eps, rand, greedy)
 
     @torch.no_grad()
-    def update(self, obs: Tensor, action: Tensor, reward: Tensor, next_obs: Tensor,
+    def update_q(self, obs: Tensor, action: Tensor, reward: Tensor, next_obs: Tensor,
                terminated: Tensor, mask: Tensor) -> float:
         """One batched Q-learning update from ``[B]`` transitions selected by ``mask``.
 
         Returns the mean absolute TD error of the masked transitions.
         """
-        q, visits = self.policy.q.view(-1), self.policy.visits.view(-1)
+        q, visits = self.table.q.view(-1), self.table.visits.view(-1)
         key = (state_index(obs) * 2 + action)[mask]
         if key.numel() == 0:
             return 0.0
-        nxt = self.policy.q[state_index(next_obs)].amax(-1)
+        nxt = self.table.q[state_index(next_obs)].amax(-1)
         target = reward + self.gamma * nxt * (~terminated).float()
         td = target[mask] - q[key]
         n = q.numel()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import matplotlib
 
@@ -11,8 +12,10 @@ import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
 from matplotlib.colors import ListedColormap  # noqa: E402
 
-from .policies import Policy  # noqa: E402
 from .runinfo import atomic_write  # noqa: E402
+
+if TYPE_CHECKING:
+    from ..agents.base import Policy
 
 TC_TABULAR = (0.0, 0.5)  # free / busy: the tabular state only sees TC > 0
 TC_DQN = (0.0, 0.2, 0.4, 0.6, 0.8, 1.0)
@@ -35,8 +38,11 @@ def policy_map(policy: Policy, tcs: tuple[float, ...], n: int = 101) -> torch.Te
     return torch.stack(maps)
 
 
-def plot_policy_map(policy: Policy, tcs: tuple[float, ...], title: str | None = None):
-    """Figure with one panel per ``TC`` value: orange = charge, pale = pass."""
+def plot_policy_map(policy: Policy, tcs: tuple[float, ...] | None = None,
+                    title: str | None = None):
+    """Figure with one panel per ``TC`` value (default: the policy's ``map_tc_values``):
+    orange = charge, pale = pass."""
+    tcs = tuple(tcs or policy.map_tc_values)
     maps = policy_map(policy, tcs)
     fig, axes = plt.subplots(1, len(tcs), figsize=(2.6 * len(tcs) + 0.6, 2.9), sharey=True,
                              squeeze=False)

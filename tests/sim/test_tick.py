@@ -1,14 +1,13 @@
-"""Tick rules of SPEC §1 on hand-built states (default site: N_N=15, X=9, T_C=30)."""
+"""The tick rules of the site model on hand-built states (SPEC §1)."""
 
 from __future__ import annotations
 
 import pytest
 import torch
-from conftest import CLOSED, OPEN, make_state
 
-from fleet_torchrl.config import SiteConfig
-from fleet_torchrl.sim import BYPASS, C, D, M, Site
+from fleet_torchrl.sim import BYPASS, C, D, M, Site, SiteConfig
 
+OPEN, CLOSED = torch.tensor([False]), torch.tensor([True])
 E_MOVE, E_IDLE, GAIN = 0.5, 0.02, 40.0 / 30
 
 
@@ -20,7 +19,7 @@ def socs(s):
     return s.soc[:, 0].tolist()
 
 
-def test_moves_only_into_an_empty_node(site):
+def test_moves_only_into_an_empty_node(site, make_state):
     s = make_state([(5, 80.0), (7, 80.0)])
     out = site.tick(s, OPEN)
     assert positions(s) == [6, 8]
@@ -29,7 +28,7 @@ def test_moves_only_into_an_empty_node(site):
     assert s.tick.item() == 1
 
 
-def test_no_bumper_to_bumper_moves(site):
+def test_no_bumper_to_bumper_moves(site, make_state):
     # 6 frees its node in this tick, but 5 saw it occupied at the start of the tick
     s = make_state([(5, 80.0), (6, 80.0), (7, 80.0)])
     site.tick(s, OPEN)
@@ -39,26 +38,26 @@ def test_no_bumper_to_bumper_moves(site):
     assert positions(s) == [5, 7, 9]
 
 
-def test_merge_priority_to_the_bypass(site):
+def test_merge_priority_to_the_bypass(site, make_state):
     s = make_state([(BYPASS, 80.0), (C, 80.0, 0)])
     site.tick(s, OPEN)
     assert positions(s) == [M, C]
     assert socs(s) == pytest.approx([80 - E_MOVE, 80 - E_IDLE])  # done charging, stuck: idle
 
 
-def test_charger_leaves_when_bypass_is_empty(site):
+def test_charger_leaves_when_bypass_is_empty(site, make_state):
     s = make_state([(C, 80.0, 0), (6, 80.0)])
     site.tick(s, OPEN)
     assert positions(s) == [M, 7]
 
 
-def test_nobody_enters_an_occupied_merge(site):
+def test_nobody_enters_an_occupied_merge(site, make_state):
     s = make_state([(BYPASS, 80.0), (C, 80.0, 0), (M, 80.0), (4, 80.0)])
     site.tick(s, OPEN)
     assert positions(s) == [BYPASS, C, M, 5]
 
 
-def test_closure_blocks_entering_x_only(site):
+def test_closure_blocks_entering_x_only(site, make_state):
     s = make_state([(8, 80.0), (9, 80.0)])
     site.tick(s, CLOSED)  # 9 leaves X (closure only stops entering), 8 waits: X was occupied
     assert positions(s) == [8, 10]
@@ -68,7 +67,7 @@ def test_closure_blocks_entering_x_only(site):
     assert positions(s) == [9, 12]
 
 
-def test_charging_gain_clock_and_cap(site):
+def test_charging_gain_clock_and_cap(site, make_state):
     s = make_state([(C, 50.0, 5)])
     site.tick(s, OPEN)
     assert positions(s) == [C] and s.left.item() == 4
@@ -78,7 +77,7 @@ def test_charging_gain_clock_and_cap(site):
     assert socs(s) == [100.0]
 
 
-def test_full_charge_adds_e_charge_then_leaves(site):
+def test_full_charge_adds_e_charge_then_leaves(site, make_state):
     s = make_state([(D, 50.0)], charge=True)
     site.tick(s, OPEN)
     assert positions(s) == [C] and s.left.item() == 30
@@ -92,7 +91,7 @@ def test_full_charge_adds_e_charge_then_leaves(site):
     assert positions(s) == [M]
 
 
-def test_charge_energy_is_kept_when_t_c_changes():
+def test_charge_energy_is_kept_when_t_c_changes(make_state):
     site = Site(SiteConfig(t_c=10))
     s = make_state([(C, 40.0, 10)])
     for _ in range(10):
@@ -100,13 +99,13 @@ def test_charge_energy_is_kept_when_t_c_changes():
     assert socs(s) == pytest.approx([80.0], abs=1e-4)
 
 
-def test_pass_goes_to_the_bypass_and_forgets_the_decision(site):
+def test_pass_goes_to_the_bypass_and_forgets_the_decision(site, make_state):
     s = make_state([(D, 80.0)], charge=False)
     site.tick(s, OPEN)
     assert positions(s) == [BYPASS]
 
 
-def test_trip_counted_and_decision_needed_on_arrival_at_d(site):
+def test_trip_counted_and_decision_needed_on_arrival_at_d(site, make_state):
     s = make_state([(14, 80.0), (5, 80.0)], charge=True)
     out = site.tick(s, OPEN)
     assert positions(s) == [D, 6]
@@ -114,14 +113,14 @@ def test_trip_counted_and_decision_needed_on_arrival_at_d(site):
     assert not s.charge.item()  # the newcomer has not decided
 
 
-def test_no_arrival_while_d_is_occupied(site):
+def test_no_arrival_while_d_is_occupied(site, make_state):
     s = make_state([(14, 80.0), (D, 80.0, 0), (C, 80.0, 10)], charge=True)
     out = site.tick(s, OPEN)
     assert positions(s) == [14, D, C]
     assert not out.arrived.item()
 
 
-def test_queue_tick_when_charger_busy(site):
+def test_queue_tick_when_charger_busy(site, make_state):
     s = make_state([(D, 35.0), (C, 60.0, 10)], charge=True)
     out = site.tick(s, OPEN)
     assert out.queue.item()
@@ -129,14 +128,14 @@ def test_queue_tick_when_charger_busy(site):
     assert socs(s)[0] == pytest.approx(35 - E_IDLE)
 
 
-def test_queue_tick_when_charger_occupied_by_a_finished_vehicle(site):
+def test_queue_tick_when_charger_occupied_by_a_finished_vehicle(site, make_state):
     # the finished vehicle cannot leave (bypass has priority): D still cannot enter C
     s = make_state([(D, 35.0), (C, 90.0, 0), (BYPASS, 60.0)], charge=True)
     out = site.tick(s, OPEN)
     assert out.queue.item()
 
 
-def test_no_queue_tick_when_entering_or_passing(site):
+def test_no_queue_tick_when_entering_or_passing(site, make_state):
     s = make_state([(D, 35.0)], charge=True)
     assert not site.tick(s, OPEN).queue.item()
     s = make_state([(D, 35.0), (BYPASS, 70.0), (M, 70.0), (4, 70.0)], charge=False)
@@ -145,7 +144,7 @@ def test_no_queue_tick_when_entering_or_passing(site):
     assert not out.queue.item()
 
 
-def test_failure_below_soc_low(site):
+def test_failure_below_soc_low(site, make_state):
     s = make_state([(5, 30.4), (10, 90.0)])
     out = site.tick(s, OPEN)
     assert out.failed.item()
@@ -153,7 +152,7 @@ def test_failure_below_soc_low(site):
     assert not site.tick(s, OPEN).failed.item()
 
 
-def test_inactive_sites_do_not_change(site):
+def test_inactive_sites_do_not_change(site, make_state):
     s = make_state([(5, 80.0), (C, 50.0, 4)], charge=True)
     before = s.clone()
     out = site.tick(s, OPEN, active=torch.tensor([False]))
@@ -162,7 +161,7 @@ def test_inactive_sites_do_not_change(site):
     assert not (out.arrived | out.queue | out.failed).any()
 
 
-def test_batch_is_independent_sites(site):
+def test_batch_is_independent_sites(site, make_state):
     a = make_state([(14, 50.0), (3, 70.0), (C, 40.0, 2)])
     b = make_state([(D, 35.0), (C, 60.0, 1), (8, 90.0)], charge=True)
     both = make_state([(14, 50.0), (3, 70.0), (C, 40.0, 2)])
@@ -177,33 +176,3 @@ def test_batch_is_independent_sites(site):
         assert torch.equal(both.pos, torch.cat([a.pos, b.pos], 1))
         assert torch.allclose(both.soc, torch.cat([a.soc, b.soc], 1))
         assert ob_.queue.tolist() == [oa.queue.item(), ob.queue.item()]
-
-
-def test_initial_states_follow_spec(site):
-    s, needs = site.init_state(0, torch.arange(2000))
-    pos = s.pos
-    assert not (pos == C).any()
-    srt = pos.sort(0).values
-    assert (srt[1:] != srt[:-1]).all()  # distinct nodes per site
-    assert (s.soc >= 40.0).all() and (s.soc <= 100.0).all()
-    assert torch.equal(needs, (pos == D).any(0))
-    # every non-C node is used, roughly uniformly: 3 of 14 nodes per site
-    counts = torch.bincount(pos.flatten(), minlength=15).float()
-    assert counts[C] == 0
-    assert (counts[[k for k in range(15) if k != C]] / (2000 * 3 / 14) - 1).abs().max() < 0.2
-
-
-def test_initial_states_and_closures_are_pure_functions(site):
-    a, _ = site.init_state(7, torch.tensor([3, 4, 5]))
-    b, _ = site.init_state(7, torch.tensor([5, 3]))
-    assert torch.equal(a.pos[:, 2], b.pos[:, 0]) and torch.equal(a.soc[:, 0], b.soc[:, 1])
-    c, _ = site.init_state(8, torch.tensor([3, 4, 5]))
-    assert not torch.equal(a.soc, c.soc)
-    block = site.closures(7, torch.arange(50), torch.arange(100)[:, None])  # [T, B]
-    single = site.closures(7, torch.tensor([13]), torch.tensor([42]))
-    assert block[42, 13] == single[0]
-    rate = block.float().mean().item()
-    assert 0.76 < rate < 0.84
-    assert not torch.equal(block, site.closures(8, torch.arange(50), torch.arange(100)[:, None]))
-    never = Site(SiteConfig(p_c=0.0))
-    assert not never.closures(7, torch.arange(50), torch.arange(9)[:, None]).any()

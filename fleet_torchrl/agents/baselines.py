@@ -1,24 +1,44 @@
-"""Decision policies: the common interface and the two hand-written baselines.
-
-A policy is an ``nn.Module`` mapping a batch of encoded observations ``[B, F]`` to actions
-``[B]`` (int64, ``0 = pass``, ``1 = charge``). It names the state encoding it reads in its
-``encoding`` attribute, so the evaluation loop and the environment build the right features.
-:func:`as_td_module` wraps any policy for TorchRL (``observation -> action``).
-"""
+"""The two hand-written baselines (SPEC §3): the rule-based benchmark and a queue-aware
+heuristic, each a :class:`~fleet_torchrl.agents.base.Policy` built from its config."""
 
 from __future__ import annotations
 
-from tensordict.nn import TensorDictModule
-from torch import Tensor, nn
+from dataclasses import dataclass
+from typing import Any
 
-PASS, CHARGE = 0, 1
+from torch import Tensor
+
+from ..utils.checks import check_range
+from .base import AgentConfig, Policy
 
 
-class Policy(nn.Module):
-    """Base class: ``forward(obs [B, F]) -> action [B] (int64)``."""
+@dataclass
+class RuleAgentConfig(AgentConfig):
+    """Benchmark: charge iff soc_D <= threshold."""
 
-    name: str = "policy"
-    encoding: str = "partial"
+    name: str = "rule"
+    threshold: float = 40.0
+
+    def validate(self, cfg: Any = None, path: str = "agent") -> RuleAgentConfig:
+        check_range(f"{path}.threshold", self.threshold, 0.0, 100.0)
+        return self
+
+
+@dataclass
+class HeuristicAgentConfig(AgentConfig):
+    """Queue-aware baseline: charge early when the charger is free and the vehicle at D is the
+    emptiest one (and below ``upper``); otherwise follow the rule with ``threshold``."""
+
+    name: str = "heuristic"
+    threshold: float = 40.0
+    upper: float = 60.0
+    others_below: float = 100.0  # charge early only if another vehicle is this low; 100 = off
+
+    def validate(self, cfg: Any = None, path: str = "agent") -> HeuristicAgentConfig:
+        check_range(f"{path}.threshold", self.threshold, 0.0, 100.0)
+        check_range(f"{path}.upper", self.upper, 0.0, 100.0)
+        check_range(f"{path}.others_below", self.others_below, 0.0, 100.0)
+        return self
 
 
 class RulePolicy(Policy):
@@ -33,6 +53,10 @@ class RulePolicy(Policy):
         super().__init__()
         self.threshold = float(threshold)
         self.encoding = encoding
+
+    @classmethod
+    def from_config(cls, agent: RuleAgentConfig) -> RulePolicy:
+        return cls(agent.threshold)
 
     def forward(self, obs: Tensor) -> Tensor:
         return (obs[..., 0] <= self.threshold / 100.0).long()
@@ -60,24 +84,13 @@ class HeuristicPolicy(Policy):
         self.upper = float(upper)
         self.others_below = float(others_below)
 
+    @classmethod
+    def from_config(cls, agent: HeuristicAgentConfig) -> HeuristicPolicy:
+        return cls(agent.threshold, agent.upper, agent.others_below)
+
     def forward(self, obs: Tensor) -> Tensor:
         soc_d, others, tc = obs[..., 0], obs[..., 1], obs[..., 2]
         early = (tc == 0) & (soc_d <= others) & (soc_d <= self.upper / 100.0)
         if self.others_below < 100.0:
             early &= others <= self.others_below / 100.0
         return (early | (soc_d <= self.threshold / 100.0)).long()
-
-
-def as_td_module(policy: Policy, obs_key: str = "observation",
-                 action_key: str = "action") -> TensorDictModule:
-    """Wrap a policy as a TorchRL/TensorDict module."""
-    return TensorDictModule(policy, in_keys=[obs_key], out_keys=[action_key])
-
-
-def build_baseline(agent_cfg) -> Policy:
-    """Policy from a ``rule`` or ``heuristic`` agent config."""
-    if agent_cfg.name == "rule":
-        return RulePolicy(agent_cfg.threshold)
-    if agent_cfg.name == "heuristic":
-        return HeuristicPolicy(agent_cfg.threshold, agent_cfg.upper, agent_cfg.others_below)
-    raise ValueError(f"agent.name={agent_cfg.name!r} is not a baseline (rule, heuristic)")

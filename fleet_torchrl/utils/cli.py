@@ -6,7 +6,7 @@ import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 
-from .config import ConfigError
+from .checks import ConfigError
 
 USER_ERRORS = (ConfigError, FileNotFoundError, ValueError)
 

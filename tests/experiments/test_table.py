@@ -1,4 +1,4 @@
-"""`make table` end to end on a tiny budget, and the grid-search config and summary."""
+"""make table end to end on a tiny budget."""
 
 from __future__ import annotations
 
@@ -6,11 +6,8 @@ import csv
 import json
 
 import pytest
-import yaml
-from conftest import CONF, make_cfg
-from hydra import compose, initialize_config_dir
 
-from fleet_torchrl import grid
+from fleet_torchrl.config import compose_config
 
 TINY_TRAIN = ["train.eval_every=1", "train.eval_sims=8", "train.eval_ticks=300",
               "train.progress=false", "mdp.tau_e=300", "train.tensorboard=false"]
@@ -18,9 +15,9 @@ TINY_TRAIN = ["train.eval_every=1", "train.eval_sims=8", "train.eval_ticks=300",
 
 @pytest.mark.slow
 def test_table_end_to_end(tmp_path):
-    from fleet_torchrl.table import run
+    from fleet_torchrl.experiments.table import run
 
-    cfg = make_cfg(["eval.n_sims=24", "eval.ticks=600", "eval.progress=false",
+    cfg = compose_config(["eval.n_sims=24", "eval.ticks=600", "eval.progress=false",
                     f"table.out={tmp_path}/table", f"table.policies_dir={tmp_path}/policies",
                     f"table.runs_dir={tmp_path}/runs"])
     cfg.table.train = {
@@ -59,46 +56,3 @@ def test_table_end_to_end(tmp_path):
     run(cfg)
     assert (tmp_path / "policies" / "tabular" / "policy.pt").exists()
     assert len(list((tmp_path / "runs").glob("train_tabular.stale-*"))) == 2
-
-
-def test_grid_config_composes_with_a_real_grid():
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        dcfg = compose(config_name="config", overrides=["+experiment=grid"],
-                       return_hydra_config=True)
-        params = dcfg.hydra.sweeper.params
-        assert dcfg.hydra.launcher._target_.endswith("JoblibLauncher")
-        for key in ("network.width", "network.depth", "network.lr", "network.weight_decay",
-                    "network.batch_size", "network.target_update", "seed"):
-            assert key in params, key
-        assert len(str(params["seed"]).split(",")) >= 2
-        assert dcfg.agent.name == "dqn"
-
-
-def _fake_job(root, num, overrides, trips, failure=0.0):
-    job = root / str(num)
-    (job / ".hydra").mkdir(parents=True)
-    (job / ".hydra" / "overrides.yaml").write_text(yaml.safe_dump(overrides))
-    if trips is not None:
-        best = {"trips": trips, "gain_pct": trips / 3.4 - 100, "failure_rate": failure,
-                "queue": 10.0}
-        (job / "train_summary.json").write_text(json.dumps({"best": best}))
-
-
-def test_grid_summary_ranks_configs_over_seeds(tmp_path):
-    sweep = tmp_path / "sweep"
-    _fake_job(sweep, 0, ["network.width=32", "seed=0", "network.lr=0.001"], 340.0)
-    _fake_job(sweep, 1, ["network.width=32", "seed=1", "network.lr=0.001"], 344.0)
-    _fake_job(sweep, 2, ["network.width=64", "seed=0", "network.lr=0.001"], 350.0)
-    _fake_job(sweep, 3, ["network.width=64", "seed=1", "network.lr=0.001"], 346.0)
-    _fake_job(sweep, 4, ["network.width=128", "seed=0", "network.lr=0.001"], None)
-    assert grid.main([str(sweep), "--out", str(tmp_path / "copy")]) == 0
-    summary = json.loads((sweep / "summary.json").read_text())
-    rows = summary["rows"]
-    assert [r["config"] for r in rows] == ["network.width=64", "network.width=32"]
-    assert rows[0]["trips_mean"] == pytest.approx(348.0) and rows[0]["seeds"] == 2
-    assert summary["shared"] == {"network.lr": "0.001"}
-    assert len(summary["missing"]) == 1 and "width=128" in summary["missing"][0]
-    assert (tmp_path / "copy" / "summary.md").exists()
-    with pytest.raises(SystemExit) as e:
-        grid.main([str(tmp_path / "nope")])
-    assert e.value.code == 2

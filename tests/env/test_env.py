@@ -1,4 +1,4 @@
-"""The TorchRL environment (SPEC §2): specs, decision epochs, rewards, resets, seeding."""
+"""The batched TorchRL environment: specs, decision epochs, rewards, resets, seeds."""
 
 from __future__ import annotations
 
@@ -7,10 +7,9 @@ import torch
 from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
-from fleet_torchrl.config import MDPConfig, SiteConfig
-from fleet_torchrl.env import FleetChargingEnv
-from fleet_torchrl.policies import HeuristicPolicy, RulePolicy, as_td_module
-from fleet_torchrl.sim import D
+from fleet_torchrl.agents import HeuristicPolicy, RulePolicy, as_td_module
+from fleet_torchrl.env import FleetChargingEnv, MDPConfig
+from fleet_torchrl.sim import D, SiteConfig
 
 
 @pytest.mark.parametrize("encoding", ["partial", "all"])
@@ -107,8 +106,8 @@ def test_partial_reset_only_touches_masked_sites():
 
 
 def test_training_sites_are_not_the_evaluation_sites():
-    from fleet_torchrl.rng import training_seed
     from fleet_torchrl.sim import Site
+    from fleet_torchrl.sim.rng import training_seed
 
     env = FleetChargingEnv(num_sites=16, seed=0)
     assert env._seed == training_seed(0) != 0

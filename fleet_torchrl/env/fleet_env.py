@@ -12,12 +12,15 @@ it, else ``-p_q`` if it was a queue tick, else 0. With ``mdp.r_trip > 0`` (an ex
 does not end the episode ends with one trip, so the term is ``r_trip / (ticks in the step)``.
 
 Every site's episode ``k`` uses site index ``k * B + b`` in the common random numbers of
-:mod:`fleet_torchrl.rng` under ``rng.training_seed(seed)``, so the whole stream of initial
+:mod:`fleet_torchrl.sim.rng` under ``rng.training_seed(seed)``, so the whole stream of initial
 states and closures is a pure function of the seed (:meth:`set_seed`) and the batch size, and
 never coincides with the sites of the evaluation protocol (which uses its seed directly).
 After a reset a site runs until its first decision; in the rare case that it fails before
 any vehicle reaches ``D`` (only possible with a tiny ``xi``), it is redrawn with its next
 episode index.
+
+The episode counters are the environment's ``state_dict`` (a buffer ``episodes``): with the
+seed, they are all a checkpoint needs to continue the stream of training sites exactly.
 
 Besides ``observation`` the environment reports per-episode counters ``trips``,
 ``queue_ticks`` and ``ticks`` (cumulative since the site's reset) for logging.
@@ -30,10 +33,9 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from . import rng
-from .config import MDPConfig, SiteConfig
+from ..sim import Site, SiteConfig, TickOutcome, rng
+from .config import MDPConfig
 from .encodings import get_encoding
-from .sim import Site, TickOutcome
 
 _MAX_REDRAWS = 100
 
@@ -70,7 +72,8 @@ class FleetChargingEnv(EnvBase):
             shape=(b,), device=dev,
         )
         self._seed = rng.training_seed(int(seed))
-        self._episodes = torch.zeros(b, dtype=torch.int64, device=dev)
+        # episode counter of every slot: with the seed, the whole state a checkpoint needs
+        self.register_buffer("episodes", torch.zeros(b, dtype=torch.int64, device=dev))
         self._arange = torch.arange(b, device=dev)
         self._hash = torch.zeros(b, dtype=torch.int64, device=dev)
         self._trips = torch.zeros(b, dtype=torch.int64, device=dev)
@@ -80,7 +83,7 @@ class FleetChargingEnv(EnvBase):
     # ------------------------------------------------------------------ TorchRL hooks
     def _set_seed(self, seed: int | None) -> None:
         self._seed = rng.training_seed(int(seed) if seed is not None else 0)
-        self._episodes.zero_()
+        self.episodes.zero_()
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         mask = None
@@ -145,8 +148,8 @@ class FleetChargingEnv(EnvBase):
         """Draw new initial states for the sites in ``mask`` and run them to a decision."""
         todo = mask.clone()
         for _ in range(_MAX_REDRAWS):
-            site_idx = self._episodes * self.num_sites + self._arange
-            self._episodes += todo
+            site_idx = self.episodes * self.num_sites + self._arange
+            self.episodes += todo
             new, needs = self.site.init_state(self._seed, site_idx)
             self.state.update_(todo, new)
             self._hash = torch.where(todo, self.site.site_hash(self._seed, site_idx), self._hash)

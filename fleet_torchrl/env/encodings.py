@@ -9,7 +9,7 @@ benchmark read either of them.
 * ``all`` (``N_N + 1``): the soc on every node (0 if empty), then ``TC``.
 
 Add an encoding by subclassing :class:`Encoding`, registering it in :data:`ENCODINGS` (config
-validation reads this registry) and adding a ``conf/state/<name>.yaml``.
+validation reads this registry) and adding a ``fleet_torchrl/conf/state/<name>.yaml``.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import functools
 import torch
 from torch import Tensor
 
-from .sim import C, D, Site, SiteState
+from ..sim import C, D, Site, SiteState
 
 
 class Encoding:

@@ -13,7 +13,7 @@ One tick (:meth:`Site.tick`) updates every vehicle of every site synchronously f
 at the start of the tick, with a fixed number of tensor operations whatever ``B`` and ``V``:
 
 1. the closure of ``X`` is an input (drawn by :meth:`Site.closures` from the common random
-   numbers of :mod:`fleet_torchrl.rng`);
+   numbers of :mod:`fleet_torchrl.sim.rng`);
 2. each vehicle's target is a table lookup indexed by ``pos + N * charge``; a vehicle with
    charging ticks left has no target;
 3. a vehicle moves iff its target was empty at the start of the tick and is not ``X`` while
@@ -48,10 +48,9 @@ import torch
 from torch import Tensor
 
 from . import rng
-from .config import SiteConfig
+from .config import MAX_NODES, SiteConfig
 
 D, C, BYPASS, M = 0, 1, 2, 3
-MAX_NODES = 62
 
 
 @dataclass

@@ -1,0 +1,102 @@
+"""The agent interface: a :class:`Policy` is what gets evaluated, a :class:`Learner` what gets
+trained. Every agent (baseline or learner) is one entry of :mod:`fleet_torchrl.agents.registry`.
+
+A policy maps a batch of encoded observations ``[B, F]`` to actions ``[B]`` (int64,
+``0 = pass``, ``1 = charge``) and names the state encoding it reads (``encoding``), so the
+evaluation loop and the environment build the right features. A learned policy also says how
+to rebuild itself from a policy file (:meth:`Policy.spec` / :meth:`Policy.from_spec`).
+
+A learner owns everything that changes while training (tables or networks, optimiser,
+replay buffer, exploration schedule) and is driven by the one training loop of
+:mod:`fleet_torchrl.training`: per round ``start_round``, then for every environment step
+``act`` and ``observe``, then ``update``.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, ClassVar
+
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModule
+from torch import Tensor, nn
+
+if TYPE_CHECKING:
+    from ..config import Config
+
+PASS, CHARGE = 0, 1
+
+
+@dataclass
+class AgentConfig:
+    """Base schema of the ``agent`` group; each agent extends it with its own fields."""
+
+    name: str = ""
+
+    def validate(self, cfg: Config, path: str = "agent") -> AgentConfig:
+        """Range checks of this agent's fields (``cfg``: the whole config, for cross-checks)."""
+        return self
+
+
+class Policy(nn.Module):
+    """Base class: ``forward(obs [B, F]) -> action [B] (int64)``."""
+
+    name: str = "policy"
+    encoding: str = "partial"
+    #: ``TC`` values of the panels of its policy map (free / busy by default)
+    map_tc_values: ClassVar[tuple[float, ...]] = (0.0, 0.5)
+
+    def spec(self) -> dict[str, Any]:
+        """Constructor arguments a policy file stores to rebuild this policy (JSON-ready)."""
+        return {}
+
+    @classmethod
+    def from_spec(cls, spec: dict[str, Any]) -> Policy:
+        return cls(**spec)
+
+
+def as_td_module(policy: Policy, obs_key: str = "observation",
+                 action_key: str = "action") -> TensorDictModule:
+    """Wrap a policy as a TorchRL/TensorDict module."""
+    return TensorDictModule(policy, in_keys=[obs_key], out_keys=[action_key])
+
+
+class Learner(nn.Module, ABC):
+    """What the training loop needs from a learner; ``state_dict`` is its checkpoint.
+
+    ``steps_per_round``: environment steps per round, every site resetting itself when its
+    episode ends (``None``: one episode per site, sites that are done stop learning and the
+    round ends when all are done).
+    """
+
+    steps_per_round: int | None = None
+
+    def start_round(self, round_idx: int) -> None:  # noqa: B027 (optional hook)
+        """Called before the first step of round ``round_idx`` (0-based)."""
+
+    @abstractmethod
+    def act(self, td: TensorDictBase) -> TensorDictBase:
+        """Write exploring actions for ``td["observation"]`` into ``td["action"]``."""
+
+    @abstractmethod
+    def observe(self, td: TensorDictBase, learn: Tensor) -> None:
+        """One environment step of all sites (``td`` holds ``next``); learn from the sites
+        selected by the ``[B]`` bool ``learn``."""
+
+    @abstractmethod
+    def update(self) -> dict[str, float]:
+        """End of a round: learn from what was observed; returns scalars to log."""
+
+    @abstractmethod
+    def policy(self) -> Policy:
+        """The current greedy policy (shares parameters with the learner)."""
+
+    @abstractmethod
+    def exploration(self) -> float:
+        """The current exploration rate (epsilon), for logging."""
+
+    def checkpoint_components(self) -> dict[str, Any]:
+        """Objects with ``state_dict``/``load_state_dict`` that a checkpoint needs besides the
+        learner itself (e.g. a replay buffer)."""
+        return {}

@@ -1,0 +1,68 @@
+"""Saved-policy files: one ``policy.pt`` (written atomically) holding a plain dict.
+
+Keys: ``format``, ``kind`` (the agent's registry name), ``encoding``, ``spec`` (the
+constructor arguments of the policy class, :meth:`Policy.spec`), ``state_dict`` and ``meta``
+(provenance). :func:`load_policy_file` rebuilds the policy through the registry.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from ..utils.runinfo import atomic_write
+from .base import Policy
+
+FORMAT = "fleet_torchrl.policy/2"
+POLICY_FILE = "policy.pt"
+
+
+def save_policy(path: str | Path, policy: Policy, kind: str,
+                meta: dict[str, Any] | None = None) -> Path:
+    """Write ``policy`` (of registry agent ``kind``) to ``path`` atomically."""
+    bundle = {
+        "format": FORMAT,
+        "kind": kind,
+        "encoding": policy.encoding,
+        "spec": policy.spec(),
+        "state_dict": {k: v.detach().cpu() for k, v in policy.state_dict().items()},
+        "meta": meta or {},
+    }
+    return atomic_write(path, lambda f: torch.save(bundle, f), mode="wb")
+
+
+def read_policy_file(path: str | Path) -> tuple[Path, dict[str, Any]]:
+    """The checked bundle of ``policy.pt`` (or of a folder holding one)."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / POLICY_FILE
+    if not path.is_file():
+        raise FileNotFoundError(f"no saved policy at {path}; train it first with `make policies` "
+                                "or `make train ARGS=\"agent=... state=...\"`")
+    try:
+        bundle = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # truncated or foreign file
+        raise ValueError(
+            f"{path} is not a readable policy file ({type(e).__name__}: {e})") from None
+    if not isinstance(bundle, dict) or bundle.get("format") != FORMAT:
+        raise ValueError(f"{path} is not a fleet_torchrl policy file (format {FORMAT} expected)")
+    return path, bundle
+
+
+def load_policy_file(path: str | Path, device: str | torch.device = "cpu") -> Policy:
+    """Rebuild a policy from ``policy.pt`` (or a folder holding one)."""
+    from .registry import AGENTS
+
+    path, bundle = read_policy_file(path)
+    kind = bundle["kind"]
+    spec = AGENTS.get(kind)
+    if spec is None or not spec.trainable:
+        raise ValueError(f"{path}: unknown policy kind {kind!r}")
+    try:
+        policy = spec.policy_class.from_spec(bundle["spec"])
+        policy.load_state_dict(bundle["state_dict"])
+    except (RuntimeError, TypeError, KeyError) as e:
+        raise ValueError(f"{path}: weights do not fit the {kind} policy ({e})") from None
+    return policy.to(device).eval()

@@ -1,0 +1,128 @@
+"""The one place that maps agent names to their schema, policy class and builder.
+
+Adding a learner is one module (schema, policy, :class:`~fleet_torchrl.agents.base.Learner`),
+one ``fleet_torchrl/conf/agent/<name>.yaml`` and one :func:`register` call below; nothing
+else switches on agent names. Baselines are entries with ``make_policy`` (built from their
+config); learners are entries with ``make_learner`` (their policies are loaded from files).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import torch
+
+from .base import AgentConfig, Learner, Policy
+from .baselines import HeuristicAgentConfig, HeuristicPolicy, RuleAgentConfig, RulePolicy
+from .dqn import DQNAgentConfig, DQNLearner, DQNPolicy
+from .policy_files import POLICY_FILE, load_policy_file
+from .tabular import TabularAgentConfig, TabularLearner, TabularQPolicy
+
+if TYPE_CHECKING:
+    from ..config import Config
+    from ..env import FleetChargingEnv
+
+
+@dataclass(frozen=True)
+class AgentSpec:
+    """One agent: its ``agent`` schema, its policy class and how to build it.
+
+    ``states``: the encodings it accepts (``None``: any). A learner's policies are named
+    ``<name>`` if it accepts one encoding, else ``<name>_<state>``.
+    """
+
+    name: str
+    schema: type[AgentConfig]
+    policy_class: type[Policy]
+    make_policy: Callable[[AgentConfig], Policy] | None = None
+    make_learner: Callable[[Config, FleetChargingEnv], Learner] | None = None
+    states: tuple[str, ...] | None = None
+
+    @property
+    def trainable(self) -> bool:
+        return self.make_learner is not None
+
+    def run_name(self, cfg: Config) -> str:
+        """Name of the policy a run of this agent makes (``tabular``, ``dqn_partial``, ...)."""
+        if self.states is not None and len(self.states) == 1:
+            return self.name
+        return f"{self.name}_{cfg.state.name}"
+
+
+AGENTS: dict[str, AgentSpec] = {}
+
+
+def register(spec: AgentSpec) -> AgentSpec:
+    AGENTS[spec.name] = spec
+    return spec
+
+
+def get_agent(name: str) -> AgentSpec:
+    try:
+        return AGENTS[name]
+    except KeyError:
+        raise ValueError(f"agent.name={name!r} is invalid: allowed one of "
+                         f"{', '.join(AGENTS)}") from None
+
+
+# ------------------------------------------------------------------------ the entries
+def _tabular_learner(cfg: Config, env: FleetChargingEnv) -> Learner:
+    return TabularLearner(k=cfg.agent.k, gamma=cfg.mdp.gamma, agent=cfg.agent).to(env.device)
+
+
+def _dqn_learner(cfg: Config, env: FleetChargingEnv) -> Learner:
+    n_obs = env.observation_spec["observation"].shape[-1]
+    return DQNLearner(cfg.agent, cfg.network, n_obs, cfg.state.name, env.action_spec,
+                      cfg.mdp.gamma, env.device)
+
+
+register(AgentSpec("rule", RuleAgentConfig, RulePolicy, make_policy=RulePolicy.from_config))
+register(AgentSpec("heuristic", HeuristicAgentConfig, HeuristicPolicy,
+                   make_policy=HeuristicPolicy.from_config))
+register(AgentSpec("tabular", TabularAgentConfig, TabularQPolicy, make_learner=_tabular_learner,
+                   states=("partial",)))
+register(AgentSpec("dqn", DQNAgentConfig, DQNPolicy, make_learner=_dqn_learner))
+
+
+# ------------------------------------------------------------------------ lookups
+def default_policy_dir(cfg: Config) -> Path:
+    """Where a training run of ``cfg`` saves its policy, and where evaluation looks for it."""
+    if cfg.train.out_dir:
+        return Path(cfg.train.out_dir)
+    return Path(cfg.table.policies_dir) / get_agent(cfg.agent.name).run_name(cfg)
+
+
+def make_policy(cfg: Config, device: str | torch.device | None = None) -> Policy:
+    """The policy ``cfg.agent`` names: baselines from their config, learned ones from disk
+    (``agent.policy`` or the default location of their run)."""
+    spec = get_agent(cfg.agent.name)
+    device = device if device is not None else cfg.eval.device
+    if not spec.trainable:
+        return spec.make_policy(cfg.agent).to(device)
+    path = Path(cfg.agent.policy) if cfg.agent.policy else default_policy_dir(cfg)
+    policy = load_policy_file(path, device)
+    if policy.encoding != cfg.state.name:
+        raise ValueError(f"{path} was trained on state={policy.encoding}, not "
+                         f"state={cfg.state.name}")
+    return policy
+
+
+def load_policies(cfg: Config, names: list[str]) -> dict[str, Policy]:
+    """Policies by name: baselines (``rule``, ``heuristic``) with their default parameters,
+    learned ones from ``cfg.table.policies_dir/<name>/policy.pt``."""
+    out: dict[str, Policy] = {}
+    for name in names:
+        spec = AGENTS.get(name)
+        if spec is not None and not spec.trainable:
+            out[name] = spec.make_policy(spec.schema()).to(cfg.eval.device)
+        else:
+            out[name] = load_policy_file(Path(cfg.table.policies_dir) / name, cfg.eval.device)
+            out[name].name = name
+    return out
+
+
+__all__ = ["AGENTS", "POLICY_FILE", "AgentSpec", "default_policy_dir", "get_agent",
+           "load_policies", "make_policy", "register"]

@@ -1,0 +1,76 @@
+"""Schemas of the experiments (SPEC §5): the main table, sweeps, policy maps, objective."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from ..utils.checks import check_choice, check_range
+
+
+@dataclass
+class TableConfig:
+    """``make table``: train what is missing, then evaluate all policies (SPEC §5 item 1)."""
+
+    out: str = "results/table"
+    policies_dir: str = "results/policies"
+    runs_dir: str = "outputs/table"  # Hydra run folders of the trainings (logs, checkpoints)
+    retrain: bool = False  # train again even when a saved policy exists
+    evaluate: bool = True  # false: only make sure the policies exist (make policies)
+    # extra overrides of each training run (the learned policies and their budgets)
+    train: dict[str, list[str]] = field(default_factory=lambda: {
+        "tabular": ["agent=tabular", "state=partial", "train.max_episodes=7000",
+                    "train.patience=40"],
+        "dqn_partial": ["agent=dqn", "state=partial", "agent.double_dqn=true",
+                        "train.max_episodes=1600", "train.patience=40"],
+        "dqn_all": ["agent=dqn", "state=all", "agent.double_dqn=true",
+                    "train.max_episodes=1440", "train.patience=40"],
+    })
+
+
+@dataclass
+class SweepConfig:
+    """One point of a generalisation sweep (SPEC §5 item 3): all policies on a changed site."""
+
+    name: str = "pc"  # sweep name: results/sweeps/<name>.{csv,json,png}
+    param: str = "p_c"  # site field varied: p_c | t_c | n_vehicles
+    value: float = 0.8  # the point evaluated by this job
+    out: str = "results/sweeps"
+    policies: list[str] = field(default_factory=lambda: [
+        "rule", "heuristic", "tabular", "dqn_partial", "dqn_all"])
+
+    def validate(self, known: tuple[str, ...], path: str = "sweep") -> SweepConfig:
+        check_choice(f"{path}.param", self.param, SWEEP_PARAMS)
+        for i, name in enumerate(self.policies):
+            check_choice(f"{path}.policies[{i}]", name, known)
+        return self
+
+
+SWEEP_PARAMS = ("p_c", "t_c", "n_vehicles")
+
+
+@dataclass
+class MapsConfig:
+    """Policy maps (SPEC §5 item 2) of saved policies on the ``partial`` state."""
+
+    out: str = "results/policy_maps"
+    policies: list[str] = field(default_factory=lambda: [
+        "rule", "heuristic", "tabular", "dqn_partial"])
+
+    def validate(self, known: tuple[str, ...], path: str = "maps") -> MapsConfig:
+        for i, name in enumerate(self.policies):
+            check_choice(f"{path}.policies[{i}]", name, known)
+        return self
+
+
+@dataclass
+class ObjectiveConfig:
+    """``python -m fleet_torchrl.objective``: the MDP's reward per decision next to trips."""
+
+    n_sites: int = 200  # one episode of mdp.tau_e ticks per site
+    seed: int = 7  # training-style sites (rng.training_seed), apart from both eval sets
+    out: str = "results/objective"
+
+    def validate(self, path: str = "objective") -> ObjectiveConfig:
+        check_range(f"{path}.n_sites", self.n_sites, 1, 10**7)
+        check_range(f"{path}.seed", self.seed, 0, 2**32 - 1)
+        return self

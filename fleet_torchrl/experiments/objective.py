@@ -1,0 +1,83 @@
+"""How the MDP's reward ranks policies, next to the trips they make.
+
+    python -m fleet_torchrl.objective                 # SPEC reward
+    python -m fleet_torchrl.objective mdp.r_trip=10   # with the optional trip reward
+
+The learners optimise the reward of SPEC §2; the evaluation reports trips. This command
+measures both for the same policies: every policy plays one episode (``mdp.tau_e`` ticks or
+until failure) on each of ``objective.n_sites`` training-style sites drawn under
+``objective.seed`` through :class:`~fleet_torchrl.env.FleetChargingEnv`, and the table lists
+the mean reward per decision (the quantity a discounted learner maximises on average, since
+``V = r / (1 - gamma)`` for a constant per-step reward) beside trips, queue ticks and failures.
+The policies are the rule, the heuristic at several upper limits (the "charge early" family
+whose trips peak near 60), one that charges early only while another vehicle is at most 75
+(``heuristic_65_75``), and every saved learned policy found in ``table.policies_dir``.
+If a policy with a higher reward makes fewer trips, a perfect learner of that reward
+ends up below the best trips gain (docs/TRAINING.md).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import torch
+
+from ..agents import POLICY_FILE, HeuristicPolicy, Policy, RulePolicy, load_policies
+from ..env import FleetChargingEnv, MDPConfig
+from ..sim import SiteConfig
+
+if TYPE_CHECKING:
+    from ..config import Config
+
+
+@torch.no_grad()
+def mdp_score(policy: Policy, site_cfg: SiteConfig, mdp_cfg: MDPConfig, n_sites: int = 200,
+              seed: int = 7, device: str | torch.device = "cpu") -> dict[str, float]:
+    """One episode per site: mean reward per decision, trips, queue ticks, failure rate."""
+    env = FleetChargingEnv(site_cfg, policy.encoding, n_sites, mdp_cfg, seed=seed, device=device)
+    policy = policy.to(env.device).eval()
+    td = env.reset()
+    reward = torch.zeros(n_sites, device=env.device)
+    steps = torch.zeros(n_sites, device=env.device)
+    done = torch.zeros(n_sites, dtype=torch.bool, device=env.device)
+    trips = torch.zeros(n_sites, device=env.device)
+    queue = torch.zeros_like(trips)
+    failed = torch.zeros_like(done)
+    while not bool(done.all()):
+        nxt = env.step(td.set("action", policy(td["observation"])))["next"]
+        live = ~done
+        reward += nxt["reward"].squeeze(-1) * live
+        steps += live
+        # counters of a finished site are frozen at its episode's end
+        trips = torch.where(live, nxt["trips"].squeeze(-1).float(), trips)
+        queue = torch.where(live, nxt["queue_ticks"].squeeze(-1).float(), queue)
+        failed |= live & nxt["terminated"].squeeze(-1)
+        done |= nxt["done"].squeeze(-1)
+        td = nxt.clone()
+    return {"reward_per_decision": float(reward.sum() / steps.sum()),
+            "decisions": float(steps.mean()), "trips": float(trips.mean()),
+            "queue": float(queue.mean()), "failure_rate": float(failed.float().mean())}
+
+
+def candidate_policies(cfg: Config) -> dict[str, Policy]:
+    """Rule, heuristic family, and the learned policies saved under ``table.policies_dir``."""
+    pols: dict[str, Policy] = {"rule": RulePolicy()}
+    for upper in (50.0, 60.0, 65.0, 70.0, 80.0):
+        pols[f"heuristic_{upper:g}"] = HeuristicPolicy(40.0, upper)
+    # early charging only while another vehicle is at most 75: as little queueing, more trips
+    pols["heuristic_65_75"] = HeuristicPolicy(40.0, 65.0, others_below=75.0)
+    root = Path(cfg.table.policies_dir)
+    saved = [name for name in cfg.table.train if (root / name / POLICY_FILE).is_file()]
+    return {**pols, **load_policies(cfg, saved)}
+
+
+def score_table(scores: dict[str, dict[str, float]]) -> str:
+    base = scores["rule"]["trips"]
+    lines = ["| policy | reward / decision | trips | gain vs rule | queue ticks | failures |",
+             "|---|---:|---:|---:|---:|---:|"]
+    for name, s in sorted(scores.items(), key=lambda kv: -kv[1]["reward_per_decision"]):
+        lines.append(f"| {name} | {s['reward_per_decision']:.5f} | {s['trips']:.1f} | "
+                     f"{(s['trips'] / base - 1) * 100:+.2f} % | {s['queue']:.1f} | "
+                     f"{s['failure_rate']:.3f} |")
+    return "\n".join(lines)

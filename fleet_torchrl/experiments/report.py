@@ -1,0 +1,137 @@
+"""Assemble ``docs/report.md`` from result files only: ``make report``.
+
+    python -m fleet_torchrl.report [--results results] [--out docs/report.md]
+
+Sections: how and where the results were made (machine, commit, wall time of each step from
+``results/timings.json``), the main comparison (``results/table``), policy maps
+(``results/policy_maps``), the three generalisation sweeps (``results/sweeps``) and the grid
+search (``results/grid``). Figures are copied next to the report (``docs/figures/``). A missing
+part is reported as not run, with the target that makes it; nothing is retrained.
+"""
+
+from __future__ import annotations
+
+import shutil
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from ..evaluation import format_table
+from ..utils.runinfo import git_commit, read_json
+
+SWEEPS = (("pc", "closure probability p_c"), ("tc", "charging ticks T_C"),
+          ("nv", "number of vehicles N_V"))
+
+
+def _copy(src: Path, figures: Path, name: str, report_dir: Path) -> str:
+    figures.mkdir(parents=True, exist_ok=True)
+    dst = figures / name
+    shutil.copyfile(src, dst)
+    return dst.relative_to(report_dir).as_posix()
+
+
+def _sweep_pivot(rows: list[dict[str, Any]]) -> str:
+    policies = list(dict.fromkeys(r["policy"] for r in rows))
+    values = sorted({r["value"] for r in rows})
+    cell = {(r["value"], r["policy"]): r for r in rows}
+    head = "| " + rows[0]["param"] + " | " + " | ".join(policies) + " |"
+    lines = [head, "|---:|" + "---:|" * len(policies)]
+    for v in values:
+        cells = []
+        for p in policies:
+            r = cell.get((v, p))
+            if r is None or r["gain_pct"] is None:
+                cells.append("")
+            else:
+                fail = f", fail {r['failure_rate']:.3f}" if r["failure_rate"] > 0 else ""
+                cells.append(f"{r['gain_pct']:+.2f} ± {r['gain_ci95']:.2f}{fail}")
+        lines.append(f"| {v} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def build(results: Path, out: Path) -> str:
+    report_dir = out.parent
+    figures = report_dir / "figures"
+    parts = ["# fleet_torchrl: results report", "",
+             f"Generated {datetime.now(UTC).isoformat(timespec='seconds')} from the "
+             f"files under `{results}/` by `make report` (commit `{git_commit() or 'unknown'}`)."
+             " Every number below is read from those files; regenerate with `make report`. "
+             "What the numbers mean, and why the learned policies fall short of the thesis's "
+             "gains on this site model: [TRAINING.md](TRAINING.md).", ""]
+    timings = results / "timings.json"
+    if timings.exists():
+        t = read_json(timings)
+        machine = next(iter(t.values()))["machine"]
+        parts += ["## How it was made", "", f"Machine: {machine}.", "",
+                  "| step | wall time | finished (UTC) | exit |", "|---|---:|---|---:|"]
+        parts += [f"| `make {k}` | {v['wall_s'] / 60:.1f} min | {v['finished']} | "
+                  f"{v['exit_code']} |" for k, v in t.items()]
+        parts.append("")
+
+    parts += ["## Main comparison (SPEC §5 item 1)", ""]
+    table = results / "table" / "table.json"
+    if table.exists():
+        rows = read_json(table)
+        size = ""
+        rule = results / "table" / "rule.json"
+        if rule.exists():
+            r = read_json(rule)
+            size = f" ({r['n_sims']} simulations x {r['ticks']} ticks, seed {r['seed']})"
+        parts += [format_table(rows), "",
+                  "Gain: mean paired difference in trips over the rule's mean, in %, with the "
+                  f"half-width of its 95% confidence interval{size}, common random numbers.",
+                  ""]
+        info = results / "table" / "run_info.json"
+        if info.exists():
+            tt = read_json(info).get("train_time_s", {})
+            parts += ["Training wall time: " + ", ".join(
+                f"{k} {v / 60:.1f} min" if v else f"{k} (reused)" for k, v in tt.items()), ""]
+        box = results / "table" / "boxplot.png"
+        if box.exists():
+            parts += [f"![box plot]({_copy(box, figures, 'boxplot.png', report_dir)})", ""]
+    else:
+        parts += ["Not run yet: `make table`.", ""]
+
+    parts += ["## Policy maps (SPEC §5 item 2)", "",
+              "Action over `soc_D` (y) x lowest soc of the other vehicles (x); orange = charge.",
+              ""]
+    maps = sorted((results / "policy_maps").glob("*.png"))
+    if maps:
+        for m in maps:
+            parts += [f"### {m.stem}", "",
+                      f"![{m.stem}]({_copy(m, figures, f'policy_map_{m.name}', report_dir)})", ""]
+    else:
+        parts += ["Not run yet: `make policy-maps`.", ""]
+
+    parts += ["## Generalisation sweeps (SPEC §5 item 3)", "",
+              "Policies trained on the default site, evaluated on changed sites. Cells: trips "
+              "gain over the rule in % ± 95% CI (failure rate when not zero).", ""]
+    for name, label in SWEEPS:
+        js = results / "sweeps" / f"{name}.json"
+        parts += [f"### {label}", ""]
+        if not js.exists():
+            parts += [f"Not run yet: `make sweep-{name}`.", ""]
+            continue
+        s = read_json(js)
+        point = next(iter(sorted((results / "sweeps" / name).glob("*.json"))), None)
+        if point is not None:
+            ev = read_json(point).get("meta", {}).get("config", {}).get("eval", {})
+            if ev:
+                parts += [f"{ev['n_sims']} simulations x {ev['ticks']} ticks per point, "
+                          f"seed {ev['seed']}.", ""]
+        parts += [_sweep_pivot(s["rows"]), ""]
+        png = results / "sweeps" / f"{name}.png"
+        if png.exists():
+            parts += [f"![sweep {name}]({_copy(png, figures, f'sweep_{name}.png', report_dir)})",
+                      ""]
+        if s.get("failed") or s.get("missing"):
+            parts += [f"Incomplete: failed {s.get('failed')}, missing {s.get('missing')}.", ""]
+
+    parts += ["## Grid search over the DQN network (SPEC §5 item 4)", ""]
+    grid = results / "grid" / "summary.md"
+    if grid.exists():
+        body = grid.read_text().splitlines()
+        parts += body[1:] + [""]
+    else:
+        parts += ["Not run yet: `make grid`.", ""]
+    return "\n".join(parts).rstrip() + "\n"

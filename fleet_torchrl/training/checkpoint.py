@@ -1,0 +1,59 @@
+"""Checkpoint identity: which settings a run's checkpoint belongs to.
+
+Every checkpoint stores the *training fingerprint* of its config (everything that decides
+what the run computes); resuming under another fingerprint would splice two runs, so it is
+refused with the list of fields that differ.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from ..utils.runinfo import to_jsonable
+
+if TYPE_CHECKING:
+    from ..config import Config
+
+CHECKPOINT = "checkpoint.ckpt"
+
+# settings a resumed run may change: they steer the run, not what it learns
+RUN_CONTROL = {"out_dir", "device", "threads", "tensorboard", "progress", "checkpoint_every"}
+
+
+def training_fingerprint(cfg: Config) -> dict[str, Any]:
+    """The part of the config that determines what a training run computes."""
+    train = {k: v for k, v in asdict(cfg.train).items() if k not in RUN_CONTROL}
+    return to_jsonable({"site": cfg.site, "state": cfg.state, "mdp": cfg.mdp,
+                        "agent": cfg.agent, "network": cfg.network, "train": train,
+                        "seed": cfg.seed})
+
+
+def fingerprint_diff(old: dict[str, Any], new: dict[str, Any], prefix: str = "") -> list[str]:
+    """``key: old -> new`` for every leaf that differs."""
+    out = []
+    for k in sorted(set(old) | set(new)):
+        a, b = old.get(k), new.get(k)
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += fingerprint_diff(a, b, f"{prefix}{k}.")
+        elif a != b:
+            out.append(f"{prefix}{k}: {a!r} -> {b!r}")
+    return out
+
+
+def checkpoint_mismatch(path: str | Path, cfg: Config) -> list[str]:
+    """Why the checkpoint at ``path`` cannot continue a run of ``cfg`` (empty if it can).
+
+    Raises ``ValueError`` if the file is not a readable checkpoint.
+    """
+    from torchrl.checkpoint import Checkpoint, CheckpointError
+
+    try:
+        meta = Checkpoint.manifest(path).get("metadata") or {}
+    except (CheckpointError, OSError, ValueError, KeyError) as e:
+        raise ValueError(f"cannot resume from {path}: not a readable checkpoint ({e})") from None
+    stored = meta.get("config")
+    if stored is None:
+        return ["the checkpoint records no configuration (written by an older version)"]
+    return fingerprint_diff(stored, training_fingerprint(cfg))

@@ -1,0 +1,58 @@
+"""The run state of a training run: a small typed object that checkpoints itself."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, fields
+from typing import Any
+
+
+@dataclass
+class EvalEntry:
+    """One periodic evaluation of the greedy policy (on the training-evaluation set)."""
+
+    round: int
+    frames: int
+    trips: float
+    queue: float
+    failure_rate: float
+    gain_pct: float
+    wall_s: float = 0.0
+
+
+@dataclass
+class Progress:
+    """Counters, early-stopping state and the evaluation history of one run.
+
+    ``best`` is ``(failure rate, mean trips)`` of the best evaluation so far: a lower failure
+    rate wins, then more trips.
+    """
+
+    round: int = 0
+    frames: int = 0
+    episodes: int = 0
+    best: tuple[float, float] | None = None
+    best_round: int | None = None
+    evals_since_best: int = 0
+    stopped_early: bool = False
+    wall_s: float = 0.0
+    history: list[EvalEntry] = field(default_factory=list)
+
+    def is_better(self, failure_rate: float, trips: float) -> bool:
+        if self.best is None:
+            return True
+        return (-failure_rate, trips) > (-self.best[0], self.best[1])
+
+    def best_entry(self) -> EvalEntry | None:
+        if self.best_round is None:
+            return None
+        return next((h for h in self.history if h.round == self.best_round), None)
+
+    # checkpoint protocol (torchrl.checkpoint calls these)
+    def state_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        for f in fields(self):
+            setattr(self, f.name, state[f.name])
+        self.best = tuple(self.best) if self.best is not None else None
+        self.history = [EvalEntry(**h) for h in self.history]

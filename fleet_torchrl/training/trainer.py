@@ -1,0 +1,308 @@
+"""The training loop: one loop for every learner (SPEC §3), with explicit setup stages.
+
+Schedule. Training runs in *rounds*. Every round resets all ``agent.num_sites`` sites of the
+batched environment and plays ``train.max_episodes / num_sites`` rounds in all (the budget
+counts one episode per site and round). A round is ``learner.start_round``, then environment
+steps (``learner.act`` -> ``env`` -> ``learner.observe``), then ``learner.update``:
+
+* a learner with ``steps_per_round = None`` (tabular) plays exactly one episode per site:
+  a site whose episode is done stops learning, and the round ends when all are done;
+* a learner with ``steps_per_round = n`` (DQN) plays ``n`` steps of all sites, a site whose
+  episode ends starting its next one at once (``env.step_and_maybe_reset``, as TorchRL's
+  collectors do).
+
+Starting every round from fresh resets makes a round boundary a clean checkpoint: the
+environment's whole state there is its seed and episode counters. Steps truncated by the
+tick budget end between two decisions, so their next observation is no decision state; no
+learner learns from them.
+
+Every ``eval_every`` rounds the greedy policy is evaluated with the protocol of SPEC §4 on a
+fixed common-random-numbers set (``train.eval_*``), next to the rule on the same set. Policies
+rank by failure rate first, then mean trips; the best policy is saved at once (atomically) and
+training stops after ``patience`` evaluations without improvement. A checkpoint (learner and
+its extra components, best policy, environment counters, RNG states, progress) is written
+atomically every ``checkpoint_every`` rounds and at the end.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import time
+from dataclasses import asdict
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import torch
+from tensordict import TensorDictBase
+
+from ..agents.base import Policy
+from ..agents.baselines import RulePolicy
+from ..agents.policy_files import POLICY_FILE, save_policy
+from ..agents.registry import default_policy_dir, get_agent
+from ..env import FleetChargingEnv
+from ..evaluation import evaluate_policy, gain_over
+from ..utils.monitor import Monitor
+from ..utils.plotting import plot_policy_map
+from ..utils.runinfo import run_info, write_json
+from .checkpoint import CHECKPOINT, checkpoint_mismatch, training_fingerprint
+from .progress import EvalEntry, Progress
+
+if TYPE_CHECKING:
+    from ..config import Config
+
+
+class EpisodeStats:
+    """Per-round statistics of the episodes that end, from the environment's counters."""
+
+    def __init__(self, n: int, device: torch.device) -> None:
+        self.reward = torch.zeros(n, device=device)  # running reward of each site's episode
+        self.ended: dict[str, list[torch.Tensor]] = {k: [] for k in
+                                                     ("reward", "trips", "queue", "failed")}
+        self.frames = 0
+
+    def add(self, td: TensorDictBase, live: torch.Tensor) -> None:
+        nxt = td["next"]
+        self.frames += int(live.sum())
+        self.reward += nxt["reward"].squeeze(-1) * live
+        end = nxt["done"].squeeze(-1) & live
+        if bool(end.any()):
+            self.ended["reward"].append(self.reward[end])
+            self.ended["trips"].append(nxt["trips"].squeeze(-1)[end].float())
+            self.ended["queue"].append(nxt["queue_ticks"].squeeze(-1)[end].float())
+            self.ended["failed"].append(nxt["terminated"].squeeze(-1)[end].float())
+            self.reward = self.reward.masked_fill(end, 0.0)
+
+    def summary(self) -> dict[str, float]:
+        if not self.ended["trips"]:
+            return {"episodes": 0}
+        cat = {k: torch.cat(v) for k, v in self.ended.items()}
+        return {"episodes": int(cat["trips"].numel()),
+                "train/episode_reward": float(cat["reward"].mean()),
+                "train/trips": float(cat["trips"].mean()),
+                "train/queue_ticks": float(cat["queue"].mean()),
+                "train/failures": float(cat["failed"].mean())}
+
+
+class Trainer:
+    """Setup stages: environment, learner, evaluation, monitoring, checkpoint; then :meth:`run`."""
+
+    def __init__(self, cfg: Config, run_dir: str | Path) -> None:
+        self.spec = get_agent(cfg.agent.name)
+        if not self.spec.trainable:
+            raise ValueError(f"agent.name={cfg.agent.name!r} is not trainable: use one of "
+                             + ", ".join(_trainable_names()))
+        self.cfg = cfg
+        self.run_dir = Path(run_dir)
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        self.name = self.spec.run_name(cfg)
+        self.out_dir = default_policy_dir(cfg)
+        self.device = torch.device(cfg.train.device)
+        self.n_rounds = math.ceil(cfg.train.max_episodes / cfg.agent.num_sites)
+        self.progress = Progress()
+        torch.manual_seed(cfg.seed)
+        self.setup_env()
+        self.setup_learner()
+        self.setup_evaluation()
+        self.setup_monitor()
+        self.setup_checkpoint()
+
+    # ------------------------------------------------------------------ setup stages
+    def setup_env(self) -> None:
+        c = self.cfg
+        self.env = FleetChargingEnv(site=c.site, encoding=c.state.name,
+                                    num_sites=c.agent.num_sites, mdp=c.mdp, seed=c.seed,
+                                    device=self.device)
+
+    def setup_learner(self) -> None:
+        self.learner = self.spec.make_learner(self.cfg, self.env)
+        self.best_policy = copy.deepcopy(self.policy()).cpu()
+
+    def setup_evaluation(self) -> None:
+        t = self.cfg.train
+        self.eval_args = dict(site_cfg=self.cfg.site, n_sims=t.eval_sims, ticks=t.eval_ticks,
+                              seed=t.eval_seed, device=t.device)
+        self.rule_eval = evaluate_policy(RulePolicy(), **self.eval_args)
+
+    def setup_monitor(self) -> None:
+        self.monitor = Monitor(self.run_dir / "tb" if self.cfg.train.tensorboard else None)
+
+    def setup_checkpoint(self) -> None:
+        from torchrl.checkpoint import Checkpoint, GlobalRNGState
+
+        self.checkpoint = Checkpoint(format="archive", learner=self.learner,
+                                     best_policy=self.best_policy, env=self.env,
+                                     rng=GlobalRNGState(), progress=self.progress)
+        for name, component in self.learner.checkpoint_components().items():
+            self.checkpoint.register(name, component)
+        self.checkpoint_path = self.run_dir / CHECKPOINT
+
+    # ------------------------------------------------------------------ helpers
+    def policy(self) -> Policy:
+        pol = self.learner.policy()
+        pol.name = self.name
+        return pol
+
+    def save_checkpoint(self) -> None:
+        self.checkpoint.save(self.checkpoint_path,
+                             metadata={"run": self.name,
+                                       "config": training_fingerprint(self.cfg)})
+
+    def load_checkpoint(self) -> bool:
+        if not self.checkpoint_path.exists():
+            return False
+        from torchrl.checkpoint import CheckpointError
+
+        diff = checkpoint_mismatch(self.checkpoint_path, self.cfg)
+        if diff:
+            raise ValueError(f"cannot resume from {self.checkpoint_path}: it belongs to another "
+                             f"configuration ({'; '.join(diff[:5])}); resume with the same "
+                             "settings or start a new run directory")
+        try:
+            self.checkpoint.load(self.checkpoint_path, map_location=self.device)
+        except (CheckpointError, OSError, ValueError, KeyError) as e:
+            raise ValueError(f"cannot resume from {self.checkpoint_path}: {e}") from None
+        return True
+
+    # ------------------------------------------------------------------ one round
+    def play_round(self) -> dict[str, float]:
+        """One round of the learner in the environment (see the module docstring)."""
+        env, learner = self.env, self.learner
+        learner.start_round(self.progress.round)
+        steps = learner.steps_per_round
+        td = env.reset()
+        live = torch.ones(env.num_sites, dtype=torch.bool, device=self.device)
+        stats = EpisodeStats(env.num_sites, self.device)
+        t = 0
+        while (steps is None and bool(live.any())) or (steps is not None and t < steps):
+            td = learner.act(td)
+            if steps is None:
+                td = env.step(td)
+                root = env.step_mdp(td)
+            else:
+                td, root = env.step_and_maybe_reset(td)
+            learner.observe(td, live & ~td["next", "truncated"].squeeze(-1))
+            stats.add(td, live)
+            if steps is None:
+                live = live & ~td["next", "done"].squeeze(-1)
+            td = root
+            t += 1
+        out = stats.summary()
+        out.update(learner.update())
+        out["frames"] = stats.frames
+        out["train/epsilon"] = learner.exploration()
+        return out
+
+    # ------------------------------------------------------------------ evaluation
+    def evaluate(self, step: int) -> EvalEntry:
+        pol = self.policy()
+        res = evaluate_policy(pol, name=self.name, **self.eval_args)
+        gain = gain_over(res, self.rule_eval)["gain_pct"]
+        p = self.progress
+        if p.is_better(res["failure_rate"], res["trips_mean"]):
+            p.best, p.best_round, p.evals_since_best = ((res["failure_rate"], res["trips_mean"]),
+                                                        p.round, 0)
+            self.best_policy.load_state_dict({k: v.detach().cpu()
+                                              for k, v in pol.state_dict().items()})
+            self.save_best()
+        else:
+            p.evals_since_best += 1
+        entry = EvalEntry(round=p.round, frames=p.frames, trips=res["trips_mean"],
+                          queue=res["queue_mean"], failure_rate=res["failure_rate"],
+                          gain_pct=gain, wall_s=p.wall_s)
+        p.history.append(entry)
+        self.monitor.scalars({"eval/trips": res["trips_mean"], "eval/queue": res["queue_mean"],
+                              "eval/failure_rate": res["failure_rate"],
+                              "eval/gain_over_rule_pct": gain, "eval/best_trips": p.best[1]},
+                             step)
+        if pol.encoding == "partial":
+            import matplotlib.pyplot as plt
+
+            fig = plot_policy_map(pol, title=f"{self.name}, round {p.round}")
+            self.monitor.figure("policy_map", fig, step)
+            plt.close(fig)
+        return entry
+
+    def save_best(self) -> None:
+        pol = self.best_policy
+        pol.encoding = self.cfg.state.name
+        save_policy(self.out_dir / POLICY_FILE, pol, self.cfg.agent.name,
+                    meta=run_info(self.cfg, seed=self.cfg.seed))
+
+    # ------------------------------------------------------------------ main loop
+    def run(self, stop_after_rounds: int | None = None) -> dict[str, Any]:
+        """Train to the end (or for ``stop_after_rounds`` more rounds, for tests of resume)."""
+        c = self.cfg
+        resumed = c.resume and self.load_checkpoint()
+        p = self.progress
+        bar = None
+        if c.train.progress:
+            from tqdm.auto import tqdm
+
+            bar = tqdm(total=self.n_rounds, initial=p.round, desc=f"train {self.name}",
+                       unit="round")
+        t_start = time.perf_counter() - p.wall_s
+        rounds_done = 0
+        while p.round < self.n_rounds and not p.stopped_early:
+            if stop_after_rounds is not None and rounds_done >= stop_after_rounds:
+                break
+            t0 = time.perf_counter()
+            stats = self.play_round()
+            dt = time.perf_counter() - t0
+            p.round += 1
+            rounds_done += 1
+            n_frames = stats.pop("frames")
+            p.frames += n_frames
+            p.episodes += stats.pop("episodes")
+            p.wall_s = time.perf_counter() - t_start
+            step = p.frames
+            self.monitor.scalars({**stats, "train/episodes": p.episodes,
+                                  "time/fps": n_frames / max(dt, 1e-9),
+                                  "time/wall_s": p.wall_s, "time/round_s": dt}, step)
+            postfix = {"frames": step, "eps": f"{self.learner.exploration():.2f}"}
+            if p.round % c.train.eval_every == 0 or p.round == self.n_rounds:
+                entry = self.evaluate(step)
+                postfix["eval_trips"] = f"{entry.trips:.1f}"
+                if c.train.patience and p.evals_since_best >= c.train.patience:
+                    p.stopped_early = True
+            if p.best is not None:
+                postfix["best"] = f"{p.best[1]:.1f}"
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(postfix)
+            if p.round % c.train.checkpoint_every == 0:
+                self.save_checkpoint()
+        if bar is not None:
+            bar.close()
+        finished = p.round >= self.n_rounds or p.stopped_early
+        if finished and not p.history:
+            self.evaluate(p.frames)
+        self.save_checkpoint()
+        summary = self.summary(resumed)
+        if finished:
+            write_json(self.out_dir / "train_summary.json", summary)
+            write_json(self.run_dir / "train_summary.json", summary)
+            best = summary["best"]
+            self.monitor.hparams(asdict(c), {"hparam/eval_trips": best["trips"],
+                                             "hparam/gain_pct": best["gain_pct"],
+                                             "hparam/failure_rate": best["failure_rate"]})
+        self.monitor.close()
+        return summary
+
+    def summary(self, resumed: bool) -> dict[str, Any]:
+        p = self.progress
+        best = p.best_entry()
+        return {"name": self.name, "rounds": p.round, "frames": p.frames,
+                "episodes": p.episodes, "wall_s": p.wall_s, "resumed": resumed,
+                "stopped_early": p.stopped_early, "best": asdict(best) if best else None,
+                "rule_on_eval_set": {k: self.rule_eval[k] for k in ("trips_mean", "queue_mean",
+                                                                    "failure_rate")},
+                "policy": str(self.out_dir / POLICY_FILE), "run_dir": str(self.run_dir),
+                "history": [asdict(h) for h in p.history],
+                "meta": run_info(self.cfg, seed=self.cfg.seed)}
+
+
+def _trainable_names() -> list[str]:
+    from ..agents.registry import AGENTS
+
+    return [name for name, spec in AGENTS.items() if spec.trainable]

@@ -1,0 +1,71 @@
+"""Result files, paired comparison and the compare command."""
+
+from __future__ import annotations
+
+import csv
+
+import pytest
+import torch
+
+from fleet_torchrl.agents import HeuristicPolicy, Policy, RulePolicy
+from fleet_torchrl.evaluation import (
+    compare,
+    evaluate_policy,
+    gain_over,
+    load_result,
+    save_result,
+)
+from fleet_torchrl.sim import SiteConfig
+
+
+class Always(Policy):
+    def __init__(self, action):
+        super().__init__()
+        self.action = action
+        self.name = f"always{action}"
+
+    def forward(self, obs):
+        return torch.full(obs.shape[:-1], self.action, dtype=torch.int64)
+
+
+def test_result_files_and_pairwise_comparison(tmp_path):
+    site = SiteConfig()
+    rule = evaluate_policy(RulePolicy(), site, 40, 2000, seed=0)
+    heur = evaluate_policy(HeuristicPolicy(), site, 40, 2000, seed=0)
+    for key in ("policy", "n_sims", "ticks", "seed", "trips_mean", "trips_std", "queue_mean",
+                "queue_std", "failure_rate", "ticks_survived_mean", "site"):
+        assert key in rule
+    js, cs = save_result(rule, tmp_path / "rule.json")
+    save_result(heur, tmp_path / "heur.json")
+    assert load_result(js)["trips_mean"] == rule["trips_mean"]
+    rows = list(csv.DictReader(cs.open()))
+    assert len(rows) == 40 and set(rows[0]) == {"sim", "trips", "queue", "failed",
+                                                "ticks_survived"}
+    g = compare(tmp_path / "heur.json", js)
+    diff = torch.tensor(heur["records"]["trips"]) - torch.tensor(rule["records"]["trips"])
+    assert g["gain_pct"] == pytest.approx(100 * diff.double().mean().item() / rule["trips_mean"])
+    assert g["gain_ci95"] > 0 and len(g["per_sim_gain_pct"]) == 40
+    assert gain_over(rule, rule)["gain_pct"] == 0.0
+    bad = dict(rule, seed=1)
+    with pytest.raises(ValueError, match="seed differs"):
+        gain_over(heur, bad)
+    other_site = evaluate_policy(RulePolicy(), SiteConfig(p_c=0.6), 40, 2000, seed=0)
+    with pytest.raises(ValueError, match="site differs"):
+        gain_over(heur, other_site)
+    with pytest.raises(FileNotFoundError):
+        load_result(tmp_path / "missing.json")
+    (tmp_path / "junk.json").write_text("{not json")
+    with pytest.raises(ValueError, match="not valid JSON"):
+        load_result(tmp_path / "junk.json")
+
+
+def test_compare_cli(tmp_path):
+    from fleet_torchrl.compare import main
+
+    site = SiteConfig()
+    save_result(evaluate_policy(RulePolicy(), site, 20, 800, seed=0), tmp_path / "r.json")
+    save_result(evaluate_policy(HeuristicPolicy(), site, 20, 800, seed=0), tmp_path / "h.json")
+    assert main([str(tmp_path / "h.json"), str(tmp_path / "r.json")]) == 0
+    with pytest.raises(SystemExit) as e:
+        main([str(tmp_path / "h.json"), str(tmp_path / "nope.json")])
+    assert e.value.code == 2

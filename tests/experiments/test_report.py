@@ -1,0 +1,40 @@
+"""The report from fixture results."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from fleet_torchrl import report
+
+
+def test_report_from_fixture_results(tmp_path):
+    res = tmp_path / "results"
+    (res / "table").mkdir(parents=True)
+    row = {"policy": "rule", "trips_mean": 1135.0, "trips_std": 13.8, "queue_mean": 500.0,
+           "queue_std": 80.0, "failure_rate": 0.0, "gain_pct": 0.0, "gain_ci95": 0.0}
+    (res / "table" / "table.json").write_text(json.dumps([row, {**row, "policy": "dqn_all",
+                                                                "gain_pct": 2.5}]))
+    (res / "table" / "boxplot.png").write_bytes(b"\x89PNG fake")
+    (res / "sweeps").mkdir()
+    pts = [{"param": "p_c", "value": v, "policy": p, "trips_mean": 1.0, "trips_std": 0.1,
+            "queue_mean": 0.0, "failure_rate": 0.0, "gain_pct": g, "gain_ci95": 0.3}
+           for v in (0.0, 0.8) for p, g in (("rule", 0.0), ("tabular", 1.5))]
+    (res / "sweeps" / "pc.json").write_text(json.dumps({"rows": pts, "failed": [],
+                                                        "missing": []}))
+    (res / "timings.json").write_text(json.dumps({"table": {
+        "wall_s": 1500.0, "exit_code": 0, "finished": "2026-11-22T05:00:00+00:00",
+        "machine": "x86_64, 2 CPUs"}}))
+    out = tmp_path / "docs" / "report.md"
+    assert report.main(["--results", str(res), "--out", str(out)]) == 0
+    text = out.read_text()
+    assert "| dqn_all |" in text and "+2.50" in text
+    assert "| 0.8 | +0.00 ± 0.30 | +1.50 ± 0.30 |" in text
+    assert "[TRAINING.md](TRAINING.md)" in text
+    assert "`make table` | 25.0 min" in text
+    assert "Not run yet: `make sweep-tc`" in text and "Not run yet: `make grid`" in text
+    assert (tmp_path / "docs" / "figures" / "boxplot.png").exists()
+    with pytest.raises(SystemExit) as e:
+        report.main(["--results", str(tmp_path / "none"), "--out", str(out)])
+    assert e.value.code == 2

@@ -1,0 +1,109 @@
+"""The training loop: learning, TensorBoard tags, checkpoints and resume."""
+
+from __future__ import annotations
+
+import glob
+
+import pytest
+import torch
+
+from fleet_torchrl.agents import load_policy_file
+from fleet_torchrl.config import compose_config
+
+# ---------------------------------------------------------------------- training
+TINY_TAB = ["agent=tabular", "agent.num_sites=32", "train.max_episodes=192", "train.eval_every=2",
+            "train.eval_sims=32", "train.eval_ticks=1500", "train.checkpoint_every=1",
+            "train.progress=false", "mdp.tau_e=1500"]
+
+
+TINY_DQN = ["agent=dqn", "agent.num_sites=4", "agent.steps_per_round=40",
+            "agent.updates_per_round=30", "agent.eps_decay_frames=400", "train.max_episodes=16",
+            "train.eval_every=2", "train.eval_sims=16", "train.eval_ticks=600",
+            "train.checkpoint_every=1", "train.progress=false", "mdp.tau_e=300"]
+
+
+def _train(overrides, tmp, stop_after=None, resume=False):
+    from fleet_torchrl.training import Trainer
+
+    cfg = compose_config([*overrides, f"train.out_dir={tmp}/policy",
+                          f"resume={str(resume).lower()}"])
+    tr = Trainer(cfg, tmp)
+    return tr, tr.run(stop_after_rounds=stop_after)
+
+
+@pytest.mark.slow
+def test_tabular_training_learns_and_saves(tmp_path):
+    tr, summary = _train(TINY_TAB, tmp_path)
+    assert summary["rounds"] == 6 and summary["episodes"] == 192
+    q = tr.learner.table.q.view(10, 10, 2, 2)  # soc_D bin, other bin, TC busy, action
+    visited = tr.learner.table.visits.view(10, 10, 2, 2).sum(-1) > 20
+    # learning happened: with the charger busy and a nearly full battery, charging only
+    # queues, so every well-visited such state must prefer passing
+    busy_full = visited[8:, 4:, 1]
+    assert busy_full.sum() >= 5
+    assert (q[8:, 4:, 1, 0] > q[8:, 4:, 1, 1])[busy_full].all()
+    pol = load_policy_file(tmp_path / "policy")
+    assert pol.q.shape == (200, 2) and pol.q.abs().sum() > 0
+    assert (tmp_path / "train_summary.json").exists()
+    # TensorBoard's own reader sees the namespaced tags
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    ea = EventAccumulator(glob.glob(str(tmp_path / "tb"))[0])
+    ea.Reload()
+    tags = set(ea.Tags()["scalars"])
+    for tag in ("train/episode_reward", "train/trips", "train/queue_ticks", "train/epsilon",
+                "loss/td", "eval/trips", "eval/queue", "eval/failure_rate",
+                "eval/gain_over_rule_pct", "time/fps", "time/wall_s"):
+        assert tag in tags, tag
+    assert "policy_map" in ea.Tags()["images"]
+
+
+@pytest.mark.slow
+def test_tabular_resume_ends_where_an_uninterrupted_run_does(tmp_path):
+    full, s_full = _train(TINY_TAB, tmp_path / "a")
+    _train(TINY_TAB, tmp_path / "b", stop_after=3)  # "killed" after round 3's checkpoint
+    res, s_res = _train(TINY_TAB, tmp_path / "b", resume=True)
+    assert s_res["resumed"] and s_res["rounds"] == s_full["rounds"]
+    assert torch.equal(res.learner.table.q, full.learner.table.q)
+    assert torch.equal(res.learner.table.visits, full.learner.table.visits)
+    assert [h["trips"] for h in s_res["history"]] == [h["trips"] for h in s_full["history"]]
+
+
+def test_resume_with_another_config_is_refused(tmp_path):
+    tiny = [*TINY_TAB, "train.max_episodes=64"]
+    _train(tiny, tmp_path, stop_after=1)
+    ckpt = tmp_path / "checkpoint.ckpt"
+    assert ckpt.exists()
+    with pytest.raises(ValueError, match=r"another configuration \(mdp.r_trip: 0.0 -> 1.0\)"):
+        _train([*tiny, "mdp.r_trip=1.0"], tmp_path, resume=True)
+    # run-control settings may change on resume; the checkpoint is untouched by the refusal
+    _, summary = _train([*tiny, "train.checkpoint_every=2"], tmp_path, resume=True)
+    assert summary["resumed"] and summary["rounds"] == 2
+    ckpt.write_bytes(b"garbage")
+    with pytest.raises(ValueError, match="not a readable checkpoint"):
+        _train(tiny, tmp_path, resume=True)
+
+
+@pytest.mark.slow
+def test_dqn_training_and_resume(tmp_path):
+    full, s_full = _train(TINY_DQN, tmp_path / "a")
+    assert s_full["rounds"] == 4 and s_full["best"] is not None
+    assert load_policy_file(tmp_path / "a" / "policy").encoding == "partial"
+    _train(TINY_DQN, tmp_path / "b", stop_after=2)
+    res, s_res = _train(TINY_DQN, tmp_path / "b", resume=True)
+    assert s_res["resumed"] and s_res["rounds"] == 4
+    for (k, a), (_, b) in zip(full.learner.qnet.state_dict().items(),
+                              res.learner.qnet.state_dict().items(), strict=True):
+        assert torch.equal(a, b), k
+    assert len(res.learner.buffer) == len(full.learner.buffer)
+    assert res.learner.exploration() == full.learner.exploration()
+    assert [h["trips"] for h in s_res["history"]] == [h["trips"] for h in s_full["history"]]
+
+
+def test_untrainable_agent_is_refused(tmp_path):
+    from fleet_torchrl.training import Trainer
+
+    with pytest.raises(ValueError, match="not trainable"):
+        Trainer(compose_config(["agent=rule"]), tmp_path)
+    with pytest.raises(ValueError, match="state.name='all' is invalid for agent=tabular"):
+        compose_config(["agent=tabular", "state=all"])
