@@ -13,9 +13,8 @@ def test_policy_maps_from_saved_policies(tmp_path, saved_policies):
     paths = run(cfg)
     assert sorted(p.name for p in paths) == ["dqn_partial.png", "heuristic.png", "rule.png",
                                              "tabular.png"]
-    from fleet_torchrl.utils.plotting import TC_TABULAR, policy_map
-
     from fleet_torchrl.agents import RulePolicy
+    from fleet_torchrl.utils.plotting import TC_TABULAR, policy_map
 
     m = policy_map(RulePolicy(), TC_TABULAR, n=101)
     assert m.shape == (2, 101, 101)
