@@ -2,13 +2,14 @@
 
 from .base import CHARGE, PASS, AgentConfig, Learner, Policy, as_td_module
 from .baselines import HeuristicPolicy, RulePolicy
-from .policy_files import POLICY_FILE, load_policy_file, save_policy
+from .policy_files import POLICY_FILE, save_policy
 from .registry import (
     AGENTS,
     AgentSpec,
     default_policy_dir,
     get_agent,
     load_policies,
+    load_policy_file,
     make_policy,
     register,
 )

@@ -2,7 +2,8 @@
 
 Keys: ``format``, ``kind`` (the agent's registry name), ``encoding``, ``spec`` (the
 constructor arguments of the policy class, :meth:`Policy.spec`), ``state_dict`` and ``meta``
-(provenance). :func:`load_policy_file` rebuilds the policy through the registry.
+(provenance). :func:`~fleet_torchrl.agents.registry.load_policy_file` rebuilds the policy
+through the registry.
 """
 
 from __future__ import annotations
@@ -49,20 +50,3 @@ def read_policy_file(path: str | Path) -> tuple[Path, dict[str, Any]]:
     if not isinstance(bundle, dict) or bundle.get("format") != FORMAT:
         raise ValueError(f"{path} is not a fleet_torchrl policy file (format {FORMAT} expected)")
     return path, bundle
-
-
-def load_policy_file(path: str | Path, device: str | torch.device = "cpu") -> Policy:
-    """Rebuild a policy from ``policy.pt`` (or a folder holding one)."""
-    from .registry import AGENTS
-
-    path, bundle = read_policy_file(path)
-    kind = bundle["kind"]
-    spec = AGENTS.get(kind)
-    if spec is None or not spec.trainable:
-        raise ValueError(f"{path}: unknown policy kind {kind!r}")
-    try:
-        policy = spec.policy_class.from_spec(bundle["spec"])
-        policy.load_state_dict(bundle["state_dict"])
-    except (RuntimeError, TypeError, KeyError) as e:
-        raise ValueError(f"{path}: weights do not fit the {kind} policy ({e})") from None
-    return policy.to(device).eval()

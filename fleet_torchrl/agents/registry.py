@@ -18,7 +18,7 @@ import torch
 from .base import AgentConfig, Learner, Policy
 from .baselines import HeuristicAgentConfig, HeuristicPolicy, RuleAgentConfig, RulePolicy
 from .dqn import DQNAgentConfig, DQNLearner, DQNPolicy
-from .policy_files import POLICY_FILE, load_policy_file
+from .policy_files import POLICY_FILE, read_policy_file
 from .tabular import TabularAgentConfig, TabularLearner, TabularQPolicy
 
 if TYPE_CHECKING:
@@ -88,6 +88,22 @@ register(AgentSpec("dqn", DQNAgentConfig, DQNPolicy, make_learner=_dqn_learner))
 
 
 # ------------------------------------------------------------------------ lookups
+def load_policy_file(path: str | Path, device: str | torch.device = "cpu") -> Policy:
+    """Rebuild a policy from ``policy.pt`` (or a folder holding one) through its agent's
+    policy class."""
+    path, bundle = read_policy_file(path)
+    kind = bundle["kind"]
+    spec = AGENTS.get(kind)
+    if spec is None or not spec.trainable:
+        raise ValueError(f"{path}: unknown policy kind {kind!r}")
+    try:
+        policy = spec.policy_class.from_spec(bundle["spec"])
+        policy.load_state_dict(bundle["state_dict"])
+    except (RuntimeError, TypeError, KeyError) as e:
+        raise ValueError(f"{path}: weights do not fit the {kind} policy ({e})") from None
+    return policy.to(device).eval()
+
+
 def default_policy_dir(cfg: Config) -> Path:
     """Where a training run of ``cfg`` saves its policy, and where evaluation looks for it."""
     if cfg.train.out_dir:
@@ -125,4 +141,4 @@ def load_policies(cfg: Config, names: list[str]) -> dict[str, Policy]:
 
 
 __all__ = ["AGENTS", "POLICY_FILE", "AgentSpec", "default_policy_dir", "get_agent",
-           "load_policies", "make_policy", "register"]
+           "load_policies", "load_policy_file", "make_policy", "register"]

@@ -8,8 +8,15 @@ import pytest
 import torch
 from hydra.core.config_store import ConfigStore
 
-from fleet_torchrl.agents import AGENTS, AgentConfig, AgentSpec, Learner, Policy, register
-from fleet_torchrl.agents.policy_files import load_policy_file
+from fleet_torchrl.agents import (
+    AGENTS,
+    AgentConfig,
+    AgentSpec,
+    Learner,
+    Policy,
+    load_policy_file,
+    register,
+)
 from fleet_torchrl.agents.registry import make_policy
 from fleet_torchrl.config import CONF_DIR, compose_config
 

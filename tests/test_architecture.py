@@ -1,0 +1,98 @@
+"""The package's layering (docs/ARCHITECTURE.md): who may import whom, and no import cycles."""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import fleet_torchrl
+
+PKG = Path(fleet_torchrl.__file__).resolve().parent
+# lower rank = lower layer; a module imports only from its own layer or lower ones
+RANK = {"utils": 0, "sim": 1, "env": 2, "agents": 3, "evaluation": 4, "training": 5,
+        "config": 6, "experiments": 7}
+COMMAND_RANK = 8  # the thin command modules at the top of the package
+
+
+def module_name(path: Path) -> str:
+    parts = path.relative_to(PKG.parent).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def runtime_imports(path: Path) -> set[str]:
+    """``fleet_torchrl`` modules imported at module level (TYPE_CHECKING blocks left out)."""
+    tree = ast.parse(path.read_text())
+    mod = module_name(path)
+    package = mod if path.name == "__init__.py" else mod.rsplit(".", 1)[0]
+    out: set[str] = set()
+    for node in tree.body:
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+            continue
+        for sub in ast.walk(node):
+            if isinstance(sub, ast.ImportFrom):
+                if sub.level:
+                    base = package.split(".")
+                    base = base[: len(base) - sub.level + 1]
+                    target = ".".join(base + ([sub.module] if sub.module else []))
+                else:
+                    target = sub.module or ""
+                if target.startswith("fleet_torchrl"):
+                    if not mod.startswith(target + "."):  # `from . import x`: x, not the parent
+                        out.add(target)
+                    out.update(f"{target}.{a.name}" for a in sub.names
+                               if (PKG.parent / f"{target}.{a.name}".replace(".", "/")).exists()
+                               or (PKG.parent / (f"{target}.{a.name}".replace(".", "/") + ".py"))
+                               .exists())
+            elif isinstance(sub, ast.Import):
+                out.update(a.name for a in sub.names if a.name.startswith("fleet_torchrl"))
+    return out
+
+
+def rank(mod: str) -> int:
+    parts = mod.split(".")
+    if len(parts) == 1:
+        return -1  # the package itself
+    return RANK.get(parts[1], COMMAND_RANK)
+
+
+def modules() -> dict[str, set[str]]:
+    return {module_name(p): runtime_imports(p) for p in PKG.rglob("*.py")}
+
+
+def test_layers_import_only_downwards():
+    bad = []
+    for mod, deps in modules().items():
+        for dep in deps:
+            # the root config composes every layer's schema module
+            schema = mod == "fleet_torchrl.config" and dep.endswith(".config")
+            if rank(dep) > rank(mod) and not schema:
+                bad.append(f"{mod} -> {dep}")
+    assert not bad, bad
+
+
+def test_no_import_cycles():
+    graph = modules()
+    state: dict[str, int] = {}
+
+    def visit(node: str, path: list[str]) -> None:
+        state[node] = 1
+        for dep in graph.get(node, ()):
+            if state.get(dep) == 1:
+                raise AssertionError(" -> ".join(path[path.index(dep):] + [dep]))
+            if dep in graph and not state.get(dep):
+                visit(dep, path + [dep])
+        state[node] = 2
+
+    for node in graph:
+        if not state.get(node):
+            visit(node, [node])
+
+
+def test_simulator_and_environment_import_no_config_framework():
+    code = ("import sys, fleet_torchrl.sim, fleet_torchrl.env; "
+            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('hydra', 'omegaconf')))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == "[]"
