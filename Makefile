@@ -57,7 +57,7 @@ sweep-nv: policies  ## generalisation sweep over N_V -> results/sweeps/nv.{csv,j
 
 sweeps: sweep-pc sweep-tc sweep-nv  ## all three generalisation sweeps
 
-experiments: table policy-maps sweeps grid report  ## every experiment of SPEC §5, then the report
+experiments: table policy-maps sweeps grid report  ## every experiment of MODEL §5, then the report
 
 report: $(STAMP)  ## assemble docs/report.md from result files (no retraining)
 	$(PY) -m fleet_torchrl.report
@@ -72,7 +72,7 @@ grid: $(STAMP)  ## DQN hyperparameter grid search (Hydra multirun, joblib) + sum
 objective: $(STAMP)  ## how the MDP reward ranks policies vs their trips -> results/objective
 	$(PY) -m fleet_torchrl.objective $(ARGS)
 
-evaluate: $(STAMP)  ## evaluate a policy (SPEC §4); overrides in ARGS
+evaluate: $(STAMP)  ## evaluate a policy (MODEL §4); overrides in ARGS
 	$(PY) -m fleet_torchrl.evaluate $(ARGS)
 
 bench: $(STAMP)  ## simulator and evaluation throughput (docs/BENCHMARKS.md)

@@ -1,4 +1,4 @@
-"""Command line: evaluate one policy with the protocol of SPEC §4.
+"""Command line: evaluate one policy with the protocol of MODEL §4.
 
     python -m fleet_torchrl.evaluate agent=rule eval.n_sims=1000 eval.ticks=10000 eval.out=rule.json
 

@@ -1,9 +1,9 @@
 """How the MDP's reward ranks policies, next to the trips they make.
 
-    python -m fleet_torchrl.objective                 # SPEC reward
+    python -m fleet_torchrl.objective                 # thesis reward
     python -m fleet_torchrl.objective mdp.r_trip=10   # with the optional trip reward
 
-The learners optimise the reward of SPEC §2; the evaluation reports trips. This command
+The learners optimise the reward of MODEL §2; the evaluation reports trips. This command
 measures both for the same policies: every policy plays one episode (``mdp.tau_e`` ticks or
 until failure) on each of ``objective.n_sites`` training-style sites drawn under
 ``objective.seed`` through :class:`~fleet_torchrl.env.FleetChargingEnv`, and the table lists

@@ -1,4 +1,4 @@
-"""Generalisation sweeps (SPEC §5 item 3): policies trained on the default site, evaluated
+"""Generalisation sweeps (MODEL §5 item 3): policies trained on the default site, evaluated
 on changed sites.
 
     make sweep-pc      # = python -m fleet_torchrl.sweeps -m +experiment=sweep_pc

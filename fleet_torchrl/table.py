@@ -1,4 +1,4 @@
-"""``make table``: the main comparison of SPEC §5 item 1 in one command.
+"""``make table``: the main comparison of MODEL §5 item 1 in one command.
 
     python -m fleet_torchrl.table                       # defaults: 1000 sims x 10 000 ticks
     python -m fleet_torchrl.table eval.n_sims=200 table.retrain=true
@@ -10,7 +10,7 @@
    checkpoints. A checkpoint of another configuration (the budgets or presets changed since)
    or an unreadable one is not resumed: its run directory is moved aside to
    ``train_<name>.stale-<time>``.
-2. Evaluate the rule, the heuristic and the learned policies with the protocol of SPEC §4 and
+2. Evaluate the rule, the heuristic and the learned policies with the protocol of MODEL §4 and
    common random numbers (``eval.*``, same seed for all: every comparison is paired).
 3. Write ``results/table/``: ``table.md``, ``table.csv``, ``table.json`` (rows with ``policy``,
    ``trips_mean``, ``trips_std``, ``queue_mean``, ``queue_std``, ``failure_rate``, ``gain_pct``,

@@ -1,4 +1,4 @@
-"""Command line: train a learned policy (SPEC §3).
+"""Command line: train a learned policy (MODEL §3).
 
     python -m fleet_torchrl.train agent=tabular
     python -m fleet_torchrl.train agent=dqn state=partial

@@ -29,7 +29,7 @@ def test_defaults_are_the_spec_values():
     assert (s.n_nodes, s.n_vehicles, s.p_c, s.t_c, s.soc_low) == (15, 3, 0.8, 30, 30.0)
     assert (s.e_move, s.e_idle, s.e_charge, s.closed_node, s.xi) == (0.5, 0.02, 40.0, 9, 10.0)
     assert (cfg.mdp.p_f, cfg.mdp.p_q, cfg.mdp.gamma, cfg.mdp.tau_e) == (50.0, 1.0, 0.9, 3000)
-    assert cfg.mdp.r_trip == 0.0  # the trip reward is an opt-in extension, not SPEC §2
+    assert cfg.mdp.r_trip == 0.0  # the trip reward is an opt-in extension, not MODEL §2
     assert cfg.agent.name == "rule" and cfg.agent.threshold == 40.0
     assert (cfg.eval.n_sims, cfg.eval.ticks) == (1000, 10000)
 

@@ -1,4 +1,4 @@
-"""The two hand-written baselines (SPEC §3): the rule-based benchmark and a queue-aware
+"""The two hand-written baselines (MODEL §3): the rule-based benchmark and a queue-aware
 heuristic, each a :class:`~fleet_torchrl.agents.base.Policy` built from its config."""
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ class HeuristicAgentConfig(AgentConfig):
 
 
 class RulePolicy(Policy):
-    """Rule-based benchmark (SPEC §3): charge iff ``soc_D <= threshold``.
+    """Rule-based benchmark (MODEL §3): charge iff ``soc_D <= threshold``.
 
     Reads feature 0 (``soc_D / 100``), which both encodings share.
     """

@@ -1,4 +1,4 @@
-"""Deep Q-learning on TorchRL (SPEC §3): the ``make_*`` factories and the learner.
+"""Deep Q-learning on TorchRL (MODEL §3): the ``make_*`` factories and the learner.
 
 Pieces, each from TorchRL: an ``MLP`` Q-network wrapped in a ``QValueActor`` (categorical
 actions), ``EGreedyModule`` exploration, a ``TensorDictReplayBuffer`` on ``LazyTensorStorage``
@@ -32,7 +32,7 @@ from .base import AgentConfig, Learner, Policy
 
 @dataclass
 class DQNAgentConfig(AgentConfig):
-    """Deep Q-learning on TorchRL (SPEC §3); the network is the ``network`` group."""
+    """Deep Q-learning on TorchRL (MODEL §3); the network is the ``network`` group."""
 
     name: str = "dqn"
     num_sites: int = 8  # sites simulated in parallel; a round resets them all
@@ -58,7 +58,7 @@ class DQNAgentConfig(AgentConfig):
 
 @dataclass
 class NetworkConfig:
-    """Q-network and its optimisation (SPEC §3 table; grid-searched by ``make grid``)."""
+    """Q-network and its optimisation (MODEL §3 table; grid-searched by ``make grid``)."""
 
     name: str = "partial"
     depth: int = 3  # hidden layers

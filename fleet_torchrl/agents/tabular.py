@@ -1,4 +1,4 @@
-"""Tabular Q-learning on the discretised ``partial`` state (SPEC §3).
+"""Tabular Q-learning on the discretised ``partial`` state (MODEL §3).
 
 State: ``soc_D`` and the lowest other soc in bins of width 10 (10 x 10; soc 100 falls in the
 top bin), and the charger ``TC`` as free (0) or busy (> 0): 200 states x 2 actions.
@@ -24,7 +24,7 @@ from .base import AgentConfig, Learner, Policy
 
 @dataclass
 class TabularAgentConfig(AgentConfig):
-    """Tabular Q-learning on the discretised ``partial`` state (SPEC §3)."""
+    """Tabular Q-learning on the discretised ``partial`` state (MODEL §3)."""
 
     name: str = "tabular"
     num_sites: int = 64  # sites simulated in parallel; one round = one episode per site

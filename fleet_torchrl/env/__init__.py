@@ -1,4 +1,4 @@
-"""The decision process (SPEC §2) on top of the simulator: state encodings and the batched
+"""The decision process (MODEL §2) on top of the simulator: state encodings and the batched
 TorchRL environment. Imports ``sim`` and TorchRL, no configuration framework."""
 
 from .config import MDPConfig, StateConfig

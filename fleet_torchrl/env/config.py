@@ -1,4 +1,4 @@
-"""Schemas of the decision process (SPEC §2): the state encoding and the MDP's reward."""
+"""Schemas of the decision process (MODEL §2): the state encoding and the MDP's reward."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from ..utils.checks import check_choice, check_range
 
 @dataclass
 class StateConfig:
-    """State encoding seen by the agents (SPEC §2): ``partial`` (3 features) or ``all``."""
+    """State encoding seen by the agents (MODEL §2): ``partial`` (3 features) or ``all``."""
 
     name: str = "partial"
 
@@ -22,13 +22,13 @@ class StateConfig:
 
 @dataclass
 class MDPConfig:
-    """The decision process of SPEC §2."""
+    """The decision process of MODEL §2."""
 
     tau_e: int = 3000  # episode tick budget (truncation)
     p_f: float = 50.0  # cost of a failure tick
     p_q: float = 1.0  # cost of a queue tick
     gamma: float = 0.9  # discount
-    r_trip: float = 0.0  # reward per completed trip; 0 = SPEC §2 (an extension, see docs)
+    r_trip: float = 0.0  # reward per completed trip; 0 = MODEL §2 (an extension, see docs)
 
     def validate(self, path: str = "mdp") -> MDPConfig:
         check_range(f"{path}.tau_e", self.tau_e, 1, 10**9)

@@ -1,4 +1,4 @@
-"""State encodings (SPEC §2): what an agent observes when a vehicle is at ``D``.
+"""State encodings (MODEL §2): what an agent observes when a vehicle is at ``D``.
 
 Features are normalised to [0, 1] (soc / 100) so that one network setting fits every site.
 In both encodings feature 0 is the soc of the vehicle at ``D``, which lets the rule-based
@@ -33,7 +33,7 @@ class Encoding:
 
 
 def charger_time(site: Site, s: SiteState) -> Tensor:
-    """``TC`` of SPEC §2 for every site: ``[B]`` float32."""
+    """``TC`` of MODEL §2 for every site: ``[B]`` float32."""
     return _charger_ticks(s).to(torch.float32) / (site.t_c + 1)
 
 

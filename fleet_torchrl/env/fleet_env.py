@@ -1,4 +1,4 @@
-"""The decision process of SPEC §2 as a batched TorchRL environment.
+"""The decision process of MODEL §2 as a batched TorchRL environment.
 
 One environment step is one *decision epoch* per site: the action (``0`` pass, ``1`` charge)
 applies to the vehicle waiting at ``D``; the site then runs tick by tick until the next vehicle

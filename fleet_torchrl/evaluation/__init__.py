@@ -1,4 +1,4 @@
-"""The evaluation protocol (SPEC §4) and its results."""
+"""The evaluation protocol (MODEL §4) and its results."""
 
 from .config import EvalConfig
 from .protocol import evaluate_policy, evaluate_with, simulate

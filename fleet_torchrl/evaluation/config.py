@@ -9,7 +9,7 @@ from ..utils.checks import check_device, check_range
 
 @dataclass
 class EvalConfig:
-    """Evaluation protocol of SPEC §4 (thesis: 1000 simulations x 10 000 ticks)."""
+    """Evaluation protocol of MODEL §4 (thesis: 1000 simulations x 10 000 ticks)."""
 
     n_sims: int = 1000
     ticks: int = 10000

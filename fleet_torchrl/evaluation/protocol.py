@@ -1,4 +1,4 @@
-"""Evaluation protocol (SPEC §4): many sites, many ticks, common random numbers.
+"""Evaluation protocol (MODEL §4): many sites, many ticks, common random numbers.
 
 :func:`simulate` runs a policy on ``n_sims`` sites for ``ticks`` ticks (or until each fails)
 straight on the simulator, without TorchRL in the loop: each tick is one :meth:`Site.tick`,

@@ -1,4 +1,4 @@
-"""Evaluation results: summaries, paired comparison, result files and tables (SPEC §4).
+"""Evaluation results: summaries, paired comparison, result files and tables (MODEL §4).
 
 A result is a plain dict (JSON-ready) made by :func:`~fleet_torchrl.evaluation.protocol.
 evaluate_policy`: the summary, the per-simulation records and the setup.
@@ -41,7 +41,7 @@ def gain_over(result: dict[str, Any], baseline: dict[str, Any]) -> dict[str, Any
     ``gain_pct`` is the mean paired difference over the baseline's mean (equal to the
     difference of means); ``gain_ci95`` is the half-width of its 95% confidence interval
     from the paired differences (normal approximation). ``per_sim_gain_pct`` is each
-    simulation's trips as % over the baseline's mean (the box-plot quantity of SPEC §5).
+    simulation's trips as % over the baseline's mean (the box-plot quantity of MODEL §5).
     Both results must come from the same seed, number of simulations, ticks and site.
     """
     for key in ("seed", "n_sims", "ticks", "site"):

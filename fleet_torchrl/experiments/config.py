@@ -1,4 +1,4 @@
-"""Schemas of the experiments (SPEC §5): the main table, sweeps, policy maps, objective."""
+"""Schemas of the experiments (MODEL §5): the main table, sweeps, policy maps, objective."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from ..utils.checks import check_choice, check_range
 
 @dataclass
 class TableConfig:
-    """``make table``: train what is missing, then evaluate all policies (SPEC §5 item 1)."""
+    """``make table``: train what is missing, then evaluate all policies (MODEL §5 item 1)."""
 
     out: str = "results/table"
     policies_dir: str = "results/policies"
@@ -29,7 +29,7 @@ class TableConfig:
 
 @dataclass
 class SweepConfig:
-    """One point of a generalisation sweep (SPEC §5 item 3): all policies on a changed site."""
+    """One point of a generalisation sweep (MODEL §5 item 3): all policies on a changed site."""
 
     name: str = "pc"  # sweep name: results/sweeps/<name>.{csv,json,png}
     param: str = "p_c"  # site field varied: p_c | t_c | n_vehicles
@@ -50,7 +50,7 @@ SWEEP_PARAMS = ("p_c", "t_c", "n_vehicles")
 
 @dataclass
 class MapsConfig:
-    """Policy maps (SPEC §5 item 2) of saved policies on the ``partial`` state."""
+    """Policy maps (MODEL §5 item 2) of saved policies on the ``partial`` state."""
 
     out: str = "results/policy_maps"
     policies: list[str] = field(default_factory=lambda: [

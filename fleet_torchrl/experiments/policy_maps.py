@@ -1,4 +1,4 @@
-"""Policy maps (SPEC §5 item 2): ``make policy-maps`` (= ``python -m fleet_torchrl.policy_maps``).
+"""Policy maps (MODEL §5 item 2): ``make policy-maps`` (= ``python -m fleet_torchrl.policy_maps``).
 
 For each policy of ``maps.policies`` (saved ones from ``table.policies_dir``), the action on a
 grid of ``soc_D`` (y) x lowest soc of the others (x), one panel per charger time ``TC``: free

@@ -68,7 +68,7 @@ def build(results: Path, out: Path) -> str:
                   f"{v['exit_code']} |" for k, v in t.items()]
         parts.append("")
 
-    parts += ["## Main comparison (SPEC §5 item 1)", ""]
+    parts += ["## Main comparison (MODEL §5 item 1)", ""]
     table = results / "table" / "table.json"
     if table.exists():
         rows = read_json(table)
@@ -92,7 +92,7 @@ def build(results: Path, out: Path) -> str:
     else:
         parts += ["Not run yet: `make table`.", ""]
 
-    parts += ["## Policy maps (SPEC §5 item 2)", "",
+    parts += ["## Policy maps (MODEL §5 item 2)", "",
               "Action over `soc_D` (y) x lowest soc of the other vehicles (x); orange = charge.",
               ""]
     maps = sorted((results / "policy_maps").glob("*.png"))
@@ -103,7 +103,7 @@ def build(results: Path, out: Path) -> str:
     else:
         parts += ["Not run yet: `make policy-maps`.", ""]
 
-    parts += ["## Generalisation sweeps (SPEC §5 item 3)", "",
+    parts += ["## Generalisation sweeps (MODEL §5 item 3)", "",
               "Policies trained on the default site, evaluated on changed sites. Cells: trips "
               "gain over the rule in % ± 95% CI (failure rate when not zero).", ""]
     for name, label in SWEEPS:
@@ -127,7 +127,7 @@ def build(results: Path, out: Path) -> str:
         if s.get("failed") or s.get("missing"):
             parts += [f"Incomplete: failed {s.get('failed')}, missing {s.get('missing')}.", ""]
 
-    parts += ["## Grid search over the DQN network (SPEC §5 item 4)", ""]
+    parts += ["## Grid search over the DQN network (MODEL §5 item 4)", ""]
     grid = results / "grid" / "summary.md"
     if grid.exists():
         body = grid.read_text().splitlines()

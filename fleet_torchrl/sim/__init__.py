@@ -1,4 +1,4 @@
-"""The charging site, tick by tick (SPEC §1): pure torch, no TorchRL, no config framework.
+"""The charging site, tick by tick (MODEL §1): pure torch, no TorchRL, no config framework.
 
 ``Site`` holds the tick rules for a batch of independent sites, ``SiteState`` their state,
 ``rng`` the counter-based common random numbers, ``SiteConfig`` the site's schema.

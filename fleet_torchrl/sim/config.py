@@ -1,4 +1,4 @@
-"""The site schema (SPEC §1): a plain dataclass with its own range checks."""
+"""The site schema (MODEL §1): a plain dataclass with its own range checks."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ MAX_NODES = 62  # occupancy of a site is one 64-bit mask
 
 @dataclass
 class SiteConfig:
-    """The site model of SPEC §1. Defaults are the SPEC's (this project's calibration)."""
+    """The site model of MODEL §1. Defaults are the model's (this project's calibration)."""
 
     name: str = "default"
     n_nodes: int = 15  # N_N: 0=D decision, 1=C charger, 2=B bypass, 3=M merge, 4..N_N-1 road

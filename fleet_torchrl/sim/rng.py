@@ -1,6 +1,6 @@
 """Counter-based random numbers: every draw is a pure function of integers.
 
-SPEC §1 asks for *common random numbers*: a site's initial state and its closure draws
+MODEL §1 asks for *common random numbers*: a site's initial state and its closure draws
 must depend only on ``(seed, site index, tick)``, never on what a policy did before.
 A stateful generator cannot give that once sites diverge, so every draw here is a hash
 of its integer coordinates (a 32-bit xorshift-multiply finaliser from Chris Wellons' hash

@@ -1,4 +1,4 @@
-"""The charging site, tick by tick (SPEC §1), for a batch of independent sites. Pure torch.
+"""The charging site, tick by tick (MODEL §1), for a batch of independent sites. Pure torch.
 
 Layout
 ------
@@ -29,7 +29,7 @@ at the start of the tick, with a fixed number of tensor operations whatever ``B`
    decided to charge and did not enter ``C`` makes a queue tick;
 7. failure: any ``soc < SoC_low`` after the tick.
 
-Choices the SPEC leaves open (documented in docs/MODEL.md as well):
+Choices the model leaves open (documented in docs/MODEL.md §1 as well):
 
 * ``soc`` is float32. ``TC`` for a vehicle that has finished charging but is stuck at ``C`` is
   ``1 / (T_C + 1)`` (its ticks left are 0, the charger is still not free).
@@ -145,7 +145,7 @@ class Site:
         return rng.combine_below(site_hash, rng.hash_ints(ticks, device=self.device), self.p_c)
 
     def init_state(self, seed: int, site_idx: Tensor) -> tuple[SiteState, Tensor]:
-        """Random initial states (SPEC §1) as a pure function of ``(seed, site index)``.
+        """Random initial states (MODEL §1) as a pure function of ``(seed, site index)``.
 
         Vehicles sit on distinct nodes drawn uniformly from all nodes but ``C``; ``soc`` is
         uniform on ``[SoC_low + xi, 100]``. Returns the state and the ``[B]`` bool mask of sites

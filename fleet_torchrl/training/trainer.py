@@ -1,4 +1,4 @@
-"""The training loop: one loop for every learner (SPEC §3), with explicit setup stages.
+"""The training loop: one loop for every learner (MODEL §3), with explicit setup stages.
 
 Schedule. Training runs in *rounds*. Every round resets all ``agent.num_sites`` sites of the
 batched environment and plays ``train.max_episodes / num_sites`` rounds in all (the budget
@@ -16,7 +16,7 @@ environment's whole state there is its seed and episode counters. Steps truncate
 tick budget end between two decisions, so their next observation is no decision state; no
 learner learns from them.
 
-Every ``eval_every`` rounds the greedy policy is evaluated with the protocol of SPEC §4 on a
+Every ``eval_every`` rounds the greedy policy is evaluated with the protocol of MODEL §4 on a
 fixed common-random-numbers set (``train.eval_*``), next to the rule on the same set. Policies
 rank by failure rate first, then mean trips; the best policy is saved at once (atomically) and
 training stops after ``patience`` evaluations without improvement. A checkpoint (learner and

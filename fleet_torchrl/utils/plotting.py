@@ -1,4 +1,4 @@
-"""Figures: policy maps (SPEC §5 item 2) and the box plot of the main comparison."""
+"""Figures: policy maps (MODEL §5 item 2) and the box plot of the main comparison."""
 
 from __future__ import annotations
 

@@ -69,7 +69,7 @@ def test_cli_end_to_end(tmp_path):
 
 @pytest.mark.slow
 def test_calibration_thesis_protocol():
-    """Acceptance of SPEC §4 on the default site: 1000 sims x 10 000 ticks, seed 0."""
+    """Acceptance of MODEL §4 on the default site: 1000 sims x 10 000 ticks, seed 0."""
     rule = evaluate_policy(RulePolicy(), SiteConfig(), 1000, 10_000, seed=0)
     assert abs(rule["trips_mean"] / 1134 - 1) < 0.02
     assert rule["failure_rate"] == 0.0

@@ -23,7 +23,7 @@ class Always(Policy):
 
 
 def test_mdp_score_ranks_by_reward_and_counts_like_the_protocol(tmp_path):
-    """The SPEC reward prefers the heuristic (less queueing) to the rule; the trip reward
+    """The thesis reward prefers the heuristic (less queueing) to the rule; the trip reward
     raises every score by about ``r_trip`` per mean step length."""
     from fleet_torchrl.config import MDPConfig
     from fleet_torchrl.experiments.objective import mdp_score, score_table

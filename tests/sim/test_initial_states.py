@@ -1,4 +1,4 @@
-"""Initial states and closure draws: the SPEC distribution, pure functions of the integers."""
+"""Initial states and closure draws: the MODEL §1 distribution, pure functions of the integers."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The tick rules of the site model on hand-built states (SPEC §1)."""
+"""The tick rules of the site model on hand-built states (MODEL §1)."""
 
 from __future__ import annotations
 
