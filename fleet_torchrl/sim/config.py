@@ -24,6 +24,7 @@ class SiteConfig:
     e_charge: float = 40.0  # energy of one full charge (E_charge / T_C per charging tick)
     closed_node: int = 9  # X, a road node
     xi: float = 10.0  # initial soc ~ U[soc_low + xi, 100]
+    leave_when_full: bool = True  # a charging vehicle that reaches soc 100 stops charging
 
     def validate(self, path: str = "site") -> SiteConfig:
         """Raise :class:`~fleet_torchrl.utils.checks.ConfigError` naming the first bad field."""

@@ -24,6 +24,8 @@ at the start of the tick, with a fixed number of tensor operations whatever ``B`
    only target is ``M``), so ``C`` waits; if ``M`` is occupied neither moves. This is exactly
    "the one at B goes, the one at C waits";
 4. energy: charging ``+E_charge/T_C`` capped at 100, moving ``-e_move``, otherwise ``-e_idle``;
+   with ``leave_when_full`` (default) a charging vehicle that reaches 100 gets 0 ticks left, so
+   it leaves ``C`` as soon as it can (the charger ends its session on a full battery);
 5. a vehicle entering ``C`` gets ``T_C`` charging ticks;
 6. counters: a move into ``D`` is a completed trip and needs a decision; a vehicle at ``D`` that
    decided to charge and did not enter ``C`` makes a queue tick;
@@ -99,6 +101,7 @@ class Site:
         self.p_c = cfg.p_c
         self.soc_low = cfg.soc_low
         self.gain = cfg.e_charge / cfg.t_c
+        self.leave_when_full = cfg.leave_when_full
 
         succ = [0] * n
         succ[D], succ[C], succ[BYPASS] = BYPASS, M, M
@@ -193,6 +196,8 @@ class Site:
             code.masked_fill_(~active, 3)  # 3: frozen, no change
         s.soc.add_(self._delta.take(code)).clamp_(max=100.0)
         left.sub_(charging.long())
+        if self.leave_when_full:  # the charger ends the session on a full battery
+            left.masked_fill_(charging & (s.soc >= 100.0), 0)
         into_c = move & (tgt == C)
         left.masked_fill_(into_c, self.t_c)
         queue = occ_d & s.charge & ~into_c.any(0)

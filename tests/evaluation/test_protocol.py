@@ -76,3 +76,15 @@ def test_calibration_thesis_protocol():
     assert 400 <= rule["queue_mean"] <= 600
     heur = evaluate_policy(HeuristicPolicy(), SiteConfig(), 1000, 10_000, seed=0)
     assert gain_over(heur, rule)["gain_pct"] >= 1.5
+
+
+def test_rule_and_heuristic_never_fill_up_so_leave_when_full_changes_nothing():
+    """Both charge at soc <= 60 and a charge adds 40: no session reaches 100, so their
+    per-simulation records are bit-identical with and without ``leave_when_full``."""
+    from fleet_torchrl.evaluation import simulate
+
+    for policy in (RulePolicy(), HeuristicPolicy()):
+        a, b = (simulate(policy, SiteConfig(leave_when_full=flag), 200, 2000, seed=3)
+                for flag in (True, False))
+        for key in a:
+            assert torch.equal(a[key], b[key]), (policy.name, key)

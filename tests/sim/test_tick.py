@@ -91,6 +91,25 @@ def test_full_charge_adds_e_charge_then_leaves(site, make_state):
     assert positions(s) == [M]
 
 
+@pytest.mark.parametrize("leave_when_full", [True, False])
+def test_a_full_battery_ends_the_charge(make_state, leave_when_full):
+    """MODEL §1 step 4: at soc 100 the charger stops (ticks left 0) and the vehicle leaves as
+    soon as it can; with ``leave_when_full=false`` it stays for all of its ``T_C`` ticks."""
+    site = Site(SiteConfig(leave_when_full=leave_when_full))
+    s = make_state([(C, 90.0, 20)])
+    for k in range(1, 8):  # 90 + 7 * 4/3 = 99.33: still charging
+        site.tick(s, OPEN)
+        assert positions(s) == [C] and s.left.item() == 20 - k
+    site.tick(s, OPEN)  # tick 8 reaches 100
+    assert socs(s) == [100.0]
+    assert s.left.item() == (0 if leave_when_full else 12)
+    site.tick(s, OPEN)
+    if leave_when_full:
+        assert positions(s) == [M] and socs(s) == [100.0 - E_MOVE]
+    else:  # charging on a full battery: no gain, no loss, the charger stays busy
+        assert positions(s) == [C] and socs(s) == [100.0] and s.left.item() == 11
+
+
 def test_charge_energy_is_kept_when_t_c_changes(make_state):
     site = Site(SiteConfig(t_c=10))
     s = make_state([(C, 40.0, 10)])
