@@ -1,19 +1,11 @@
 """How the MDP's reward ranks policies, next to the trips they make.
 
-    python -m fleet_torchrl.objective                 # thesis reward
-    python -m fleet_torchrl.objective mdp.r_trip=10   # with the optional trip reward
+    python -m fleet_torchrl.objective                         # mdp.reward=thesis
+    python -m fleet_torchrl.objective mdp.reward=throughput   # the trip-aligned objective
 
-The learners optimise the reward of MODEL §2; the evaluation reports trips. This command
-measures both for the same policies: every policy plays one episode (``mdp.tau_e`` ticks or
-until failure) on each of ``objective.n_sites`` training-style sites drawn under
-``objective.seed`` through :class:`~fleet_torchrl.env.FleetChargingEnv`, and the table lists
-the mean reward per decision (the quantity a discounted learner maximises on average, since
-``V = r / (1 - gamma)`` for a constant per-step reward) beside trips, queue ticks and failures.
-The policies are the rule, the heuristic at several upper limits (the "charge early" family
-whose trips peak near 60), one that charges early only while another vehicle is at most 75
-(``heuristic_65_75``), and every saved learned policy found in ``table.policies_dir``.
-If a policy with a higher reward makes fewer trips, a perfect learner of that reward
-ends up below the best trips gain (docs/TRAINING.md).
+Scores the rule, the heuristic family and every saved learned policy by the objective's
+reward beside their trips (:mod:`fleet_torchrl.experiments.objective`) and writes
+``results/objective/objective.{md,json}``.
 """
 
 from __future__ import annotations
@@ -24,7 +16,7 @@ import hydra
 from omegaconf import DictConfig
 
 from .config import register_configs, to_config
-from .experiments.objective import candidate_policies, mdp_score, score_table
+from .experiments.objective import candidate_policies, criterion, mdp_score, score_table
 from .utils.cli import user_errors
 from .utils.runinfo import run_info, write_json, write_text
 
@@ -38,10 +30,12 @@ def main(dcfg: DictConfig) -> None:
         o = cfg.objective
         scores = {name: mdp_score(p, cfg.site, cfg.mdp, o.n_sites, o.seed, cfg.eval.device)
                   for name, p in candidate_policies(cfg).items()}
-        text = score_table(scores)
+        key = criterion(cfg.mdp)
+        text = score_table(scores, key)
         print(text)
         print(f"({o.n_sites} episodes of {cfg.mdp.tau_e} ticks, seed {o.seed}, "
-              f"r_trip={cfg.mdp.r_trip:g}; sorted by reward)")
+              f"reward={cfg.mdp.reward}, leave_when_full={cfg.site.leave_when_full}; "
+              f"sorted by {key})")
         out = Path(o.out)
         write_json(out / "objective.json", {"scores": scores,
                                             "meta": run_info(cfg, seed=o.seed)})

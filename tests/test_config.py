@@ -29,7 +29,8 @@ def test_defaults_are_the_spec_values():
     assert (s.n_nodes, s.n_vehicles, s.p_c, s.t_c, s.soc_low) == (15, 3, 0.8, 30, 30.0)
     assert (s.e_move, s.e_idle, s.e_charge, s.closed_node, s.xi) == (0.5, 0.02, 40.0, 9, 10.0)
     assert (cfg.mdp.p_f, cfg.mdp.p_q, cfg.mdp.gamma, cfg.mdp.tau_e) == (50.0, 1.0, 0.9, 3000)
-    assert cfg.mdp.r_trip == 0.0  # the trip reward is an opt-in extension, not MODEL §2
+    assert cfg.mdp.reward == "thesis"  # the throughput objective is an opt-in extension
+    assert cfg.site.leave_when_full  # owner decision: the charger stops on a full battery
     assert cfg.agent.name == "rule" and cfg.agent.threshold == 40.0
     assert (cfg.eval.n_sims, cfg.eval.ticks) == (1000, 10000)
 
@@ -57,7 +58,9 @@ def test_site_variants():
     ("agent=heuristic agent.others_below=120", "agent.others_below"),
     ("state.name=foo", "state.name"),
     ("mdp.gamma=1.5", "mdp.gamma"),
-    ("mdp.r_trip=-1", "mdp.r_trip"),
+    ("mdp.reward=trips", "mdp.reward"),
+    ("mdp.gamma_tick=1.5", "mdp.gamma_tick"),
+    ("mdp.rho=-0.1", "mdp.rho"),
     ("agent=dqn network.grad_clip=-1", "network.grad_clip"),
     ("objective.n_sites=0", "objective.n_sites"),
     ("objective.seed=-1", "objective.seed"),

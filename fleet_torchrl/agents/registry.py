@@ -70,7 +70,8 @@ def get_agent(name: str) -> AgentSpec:
 
 # ------------------------------------------------------------------------ the entries
 def _tabular_learner(cfg: Config, env: FleetChargingEnv) -> Learner:
-    return TabularLearner(k=cfg.agent.k, gamma=cfg.mdp.gamma, agent=cfg.agent).to(env.device)
+    return TabularLearner(k=cfg.agent.k, gamma=cfg.mdp.discount, agent=cfg.agent,
+                          mdp=cfg.mdp).to(env.device)
 
 
 def _dqn_learner(cfg: Config, env: FleetChargingEnv) -> Learner:

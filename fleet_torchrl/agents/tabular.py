@@ -18,6 +18,7 @@ import torch
 from tensordict import TensorDictBase
 from torch import Tensor
 
+from ..env import MDPConfig, discount_exponent
 from ..utils.checks import check_range
 from .base import AgentConfig, Learner, Policy
 
@@ -90,12 +91,13 @@ class TabularLearner(Learner):
     steps_per_round = None
 
     def __init__(self, k: float = 100.0, gamma: float = 0.9,
-                 agent: TabularAgentConfig | None = None) -> None:
+                 agent: TabularAgentConfig | None = None, mdp: MDPConfig | None = None) -> None:
         super().__init__()
         self.table = TabularQPolicy()
         self.k = float(k)
-        self.gamma = float(gamma)
+        self.gamma = float(gamma)  # discount base; ** the transition's exponent (mdp)
         self.agent = agent or TabularAgentConfig()
+        self.mdp = mdp or MDPConfig(gamma=self.gamma)
         self.eps = self.agent.eps_start
         self._td_sum, self._td_n = 0.0, 0
 
@@ -114,9 +116,10 @@ class TabularLearner(Learner):
 
     def observe(self, td: TensorDictBase, learn: Tensor) -> None:
         nxt = td["next"]
+        expo = discount_exponent(td, self.mdp).squeeze(-1)
         self._td_sum += self.update_q(td["observation"], td["action"],
                                       nxt["reward"].squeeze(-1), nxt["observation"],
-                                      nxt["terminated"].squeeze(-1), learn)
+                                      nxt["terminated"].squeeze(-1), learn, expo)
         self._td_n += 1
 
     def update(self) -> dict[str, float]:
@@ -136,8 +139,11 @@ class TabularLearner(Learner):
 
     @torch.no_grad()
     def update_q(self, obs: Tensor, action: Tensor, reward: Tensor, next_obs: Tensor,
-               terminated: Tensor, mask: Tensor) -> float:
+               terminated: Tensor, mask: Tensor, expo: Tensor | None = None) -> float:
         """One batched Q-learning update from ``[B]`` transitions selected by ``mask``.
+
+        ``expo``: each transition's discount exponent (``gamma ** expo``; default 1, i.e.
+        per decision; the ticks of the step for the throughput objective).
 
         Returns the mean absolute TD error of the masked transitions.
         """
@@ -146,7 +152,8 @@ class TabularLearner(Learner):
         if key.numel() == 0:
             return 0.0
         nxt = self.table.q[state_index(next_obs)].amax(-1)
-        target = reward + self.gamma * nxt * (~terminated).float()
+        disc = self.gamma if expo is None else torch.pow(self.gamma, expo.to(reward.dtype))
+        target = reward + disc * nxt * (~terminated).float()
         td = target[mask] - q[key]
         n = q.numel()
         cnt = torch.bincount(key, minlength=n)

@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 from ..utils.checks import check_choice, check_range
 
+REWARDS = ("thesis", "throughput")
+
 
 @dataclass
 class StateConfig:
@@ -22,18 +24,29 @@ class StateConfig:
 
 @dataclass
 class MDPConfig:
-    """The decision process of MODEL §2."""
+    """The decision process of MODEL §2 and its two objectives (``reward``)."""
 
     tau_e: int = 3000  # episode tick budget (truncation)
-    p_f: float = 50.0  # cost of a failure tick
-    p_q: float = 1.0  # cost of a queue tick
-    gamma: float = 0.9  # discount
-    r_trip: float = 0.0  # reward per completed trip; 0 = MODEL §2 (an extension, see docs)
+    reward: str = "thesis"  # thesis (MODEL §2.2) | throughput (trips, semi-Markov, MODEL §2.3)
+    p_f: float = 50.0  # cost of a failure tick (both objectives)
+    p_q: float = 1.0  # cost of a queue tick (thesis)
+    gamma: float = 0.9  # discount per decision (thesis)
+    gamma_tick: float = 0.99  # discount per tick (throughput): gamma_tick^dt per step
+    rho: float = 0.115  # reference trips per tick subtracted every tick (throughput)
 
     def validate(self, path: str = "mdp") -> MDPConfig:
         check_range(f"{path}.tau_e", self.tau_e, 1, 10**9)
+        check_choice(f"{path}.reward", self.reward, REWARDS)
         check_range(f"{path}.p_f", self.p_f, 0.0, None)
         check_range(f"{path}.p_q", self.p_q, 0.0, None)
         check_range(f"{path}.gamma", self.gamma, 0.0, 1.0)
-        check_range(f"{path}.r_trip", self.r_trip, 0.0, None)
+        check_range(f"{path}.gamma_tick", self.gamma_tick, 0.0, 1.0)
+        check_range(f"{path}.rho", self.rho, 0.0, 1.0)
         return self
+
+    @property
+    def discount(self) -> float:
+        """The learners' discount base: per decision (thesis) or per tick (throughput); a
+        transition is discounted by ``discount ** exponent`` (see
+        :func:`fleet_torchrl.env.fleet_env.discount_exponent`)."""
+        return self.gamma if self.reward == "thesis" else self.gamma_tick

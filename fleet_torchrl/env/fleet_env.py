@@ -6,10 +6,20 @@ reaches ``D`` (a new decision), the site fails (``terminated``) or the episode's
 ``tau_e`` runs out (``truncated``). Sites finish at different ticks; a site that is done for
 this step is frozen (it does not advance) while the others go on.
 
-Reward: the mean cost of the ticks of the step, a tick costing ``-p_f`` if the site failed in
-it, else ``-p_q`` if it was a queue tick, else 0. With ``mdp.r_trip > 0`` (an extension,
-0 by default) a tick in which a trip is completed also earns ``+r_trip``; every step that
-does not end the episode ends with one trip, so the term is ``r_trip / (ticks in the step)``.
+Reward, ``mdp.reward`` (MODEL §2):
+
+* ``thesis`` (default): the mean cost of the ticks of the step, a tick costing ``-p_f`` if the
+  site failed in it, else ``-p_q`` if it was a queue tick, else 0; the learners discount it by
+  ``mdp.gamma`` per decision.
+* ``throughput`` (an extension): a semi-Markov, differential trip reward. Tick ``k`` of the
+  step (``k = 0`` is the tick right after the decision) earns ``trip_k - rho - p_f * fail_k``
+  (``rho = mdp.rho``, a reference trip rate per tick), discounted within the step by
+  ``gamma_tick^k``, so a step of ``dt`` ticks that ends with a trip earns
+  ``gamma_tick^(dt-1) - rho * (1 - gamma_tick^dt) / (1 - gamma_tick)``; the learners discount
+  the next state by ``gamma_tick^dt``. Its long-run average per tick is
+  ``trips/tick - rho - p_f * failures/tick``: without failures it ranks policies exactly by
+  their trips, and ``rho`` only centres the values near 0. The discount exponent of every
+  transition is given by :func:`discount_exponent`.
 
 Every site's episode ``k`` uses site index ``k * B + b`` in the common random numbers of
 :mod:`fleet_torchrl.sim.rng` under ``rng.training_seed(seed)``, so the whole stream of initial
@@ -38,6 +48,19 @@ from .config import MDPConfig
 from .encodings import get_encoding
 
 _MAX_REDRAWS = 100
+
+
+def step_ticks(td: TensorDictBase) -> torch.Tensor:
+    """Ticks of each step of a rollout or batch: ``next.ticks - ticks`` (``[..., 1]``)."""
+    return td.get(("next", "ticks")) - td.get("ticks")
+
+
+def discount_exponent(td: TensorDictBase, mdp: MDPConfig) -> torch.Tensor:
+    """The exponent of ``mdp.discount`` for each transition (float, ``[..., 1]``): 1 per
+    decision (``thesis``) or the step's ticks (``throughput``, ``gamma_tick^dt``)."""
+    if mdp.reward == "thesis":
+        return torch.ones_like(td.get(("next", "reward")))
+    return step_ticks(td).to(torch.float32)
 
 
 class FleetChargingEnv(EnvBase):
@@ -104,12 +127,18 @@ class FleetChargingEnv(EnvBase):
         n_ticks = torch.zeros(b, dtype=torch.int64, device=self.device)
         terminated = torch.zeros(b, dtype=torch.bool, device=self.device)
         truncated = torch.zeros_like(terminated)
-        p_f, p_q, r_trip, tau = self.mdp.p_f, self.mdp.p_q, self.mdp.r_trip, self.mdp.tau_e
+        m = self.mdp
+        p_f, p_q, tau, thesis = m.p_f, m.p_q, m.tau_e, m.reward == "thesis"
+        disc = torch.ones(b, dtype=torch.float32, device=self.device)  # gamma_tick^k
         while True:
+            was_active = active.clone()
             out = self._advance(active)
-            cost -= torch.where(out.failed, p_f, torch.where(out.queue, p_q, 0.0))
-            if r_trip:
-                cost += torch.where(out.arrived & active, r_trip, 0.0)
+            if thesis:
+                cost -= torch.where(out.failed, p_f, torch.where(out.queue, p_q, 0.0))
+            else:  # arrived and failed are False on frozen sites
+                tick_r = out.arrived.float() - m.rho * was_active - p_f * out.failed.float()
+                cost += disc * tick_r
+                disc = torch.where(was_active, disc * m.gamma_tick, disc)
             n_ticks += active
             terminated |= out.failed
             out_of_time = active & (s.tick >= tau) & ~out.failed
@@ -118,7 +147,7 @@ class FleetChargingEnv(EnvBase):
             if not bool(active.any()):
                 break
         td = self._observe()
-        td.set("reward", (cost / n_ticks).unsqueeze(-1))
+        td.set("reward", (cost / n_ticks if thesis else cost).unsqueeze(-1))
         td.set("terminated", terminated.unsqueeze(-1))
         td.set("truncated", truncated.unsqueeze(-1))
         td.set("done", (terminated | truncated).unsqueeze(-1))

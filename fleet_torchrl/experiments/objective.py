@@ -1,14 +1,19 @@
 """How the MDP's reward ranks policies, next to the trips they make.
 
-    python -m fleet_torchrl.objective                 # thesis reward
-    python -m fleet_torchrl.objective mdp.r_trip=10   # with the optional trip reward
+    python -m fleet_torchrl.objective                         # mdp.reward=thesis
+    python -m fleet_torchrl.objective mdp.reward=throughput   # the trip-aligned objective
 
 The learners optimise the reward of MODEL §2; the evaluation reports trips. This command
 measures both for the same policies: every policy plays one episode (``mdp.tau_e`` ticks or
 until failure) on each of ``objective.n_sites`` training-style sites drawn under
 ``objective.seed`` through :class:`~fleet_torchrl.env.FleetChargingEnv`, and the table lists
-the mean reward per decision (the quantity a discounted learner maximises on average, since
-``V = r / (1 - gamma)`` for a constant per-step reward) beside trips, queue ticks and failures.
+the mean reward per decision (the quantity a learner discounting per decision maximises on
+average, since ``V = r / (1 - gamma)`` for a constant per-step reward) and the long-run reward
+per tick (what a learner discounting per tick maximises as ``gamma_tick -> 1``:
+``-(p_q * queue + p_f * failures) / ticks`` for ``thesis``, ``(trips - rho * ticks - p_f *
+failures) / ticks`` for ``throughput``) beside trips, queue ticks and failures. The table is
+sorted by the criterion of the objective: per decision for ``thesis``, per tick for
+``throughput`` (:func:`criterion`).
 The policies are the rule, the heuristic at several upper limits (the "charge early" family
 whose trips peak near 60), one that charges early only while another vehicle is at most 75
 (``heuristic_65_75``), and every saved learned policy found in ``table.policies_dir``.
@@ -43,6 +48,7 @@ def mdp_score(policy: Policy, site_cfg: SiteConfig, mdp_cfg: MDPConfig, n_sites:
     done = torch.zeros(n_sites, dtype=torch.bool, device=env.device)
     trips = torch.zeros(n_sites, device=env.device)
     queue = torch.zeros_like(trips)
+    ticks = torch.zeros_like(trips)
     failed = torch.zeros_like(done)
     while not bool(done.all()):
         nxt = env.step(td.set("action", policy(td["observation"])))["next"]
@@ -52,10 +58,17 @@ def mdp_score(policy: Policy, site_cfg: SiteConfig, mdp_cfg: MDPConfig, n_sites:
         # counters of a finished site are frozen at its episode's end
         trips = torch.where(live, nxt["trips"].squeeze(-1).float(), trips)
         queue = torch.where(live, nxt["queue_ticks"].squeeze(-1).float(), queue)
+        ticks = torch.where(live, nxt["ticks"].squeeze(-1).float(), ticks)
         failed |= live & nxt["terminated"].squeeze(-1)
         done |= nxt["done"].squeeze(-1)
         td = nxt.clone()
+    m = mdp_cfg
+    if m.reward == "thesis":
+        per_tick = -(m.p_q * queue.sum() + m.p_f * failed.sum()) / ticks.sum()
+    else:
+        per_tick = (trips.sum() - m.rho * ticks.sum() - m.p_f * failed.sum()) / ticks.sum()
     return {"reward_per_decision": float(reward.sum() / steps.sum()),
+            "reward_per_tick": float(per_tick),
             "decisions": float(steps.mean()), "trips": float(trips.mean()),
             "queue": float(queue.mean()), "failure_rate": float(failed.float().mean())}
 
@@ -63,7 +76,7 @@ def mdp_score(policy: Policy, site_cfg: SiteConfig, mdp_cfg: MDPConfig, n_sites:
 def candidate_policies(cfg: Config) -> dict[str, Policy]:
     """Rule, heuristic family, and the learned policies saved under ``table.policies_dir``."""
     pols: dict[str, Policy] = {"rule": RulePolicy()}
-    for upper in (50.0, 60.0, 65.0, 70.0, 80.0):
+    for upper in (50.0, 55.0, 60.0, 65.0, 70.0, 75.0, 80.0):
         pols[f"heuristic_{upper:g}"] = HeuristicPolicy(40.0, upper)
     # early charging only while another vehicle is at most 75: as little queueing, more trips
     pols["heuristic_65_75"] = HeuristicPolicy(40.0, 65.0, others_below=75.0)
@@ -72,12 +85,20 @@ def candidate_policies(cfg: Config) -> dict[str, Policy]:
     return {**pols, **load_policies(cfg, saved)}
 
 
-def score_table(scores: dict[str, dict[str, float]]) -> str:
+def criterion(mdp_cfg: MDPConfig) -> str:
+    """The score a learner of this objective maximises: per decision (``thesis``, discounted
+    per decision) or per tick (``throughput``, discounted per tick)."""
+    return "reward_per_decision" if mdp_cfg.reward == "thesis" else "reward_per_tick"
+
+
+def score_table(scores: dict[str, dict[str, float]], key: str = "reward_per_decision") -> str:
+    """Markdown table of the scores, best first by ``key``."""
     base = scores["rule"]["trips"]
-    lines = ["| policy | reward / decision | trips | gain vs rule | queue ticks | failures |",
-             "|---|---:|---:|---:|---:|---:|"]
-    for name, s in sorted(scores.items(), key=lambda kv: -kv[1]["reward_per_decision"]):
-        lines.append(f"| {name} | {s['reward_per_decision']:.5f} | {s['trips']:.1f} | "
+    lines = ["| policy | reward / decision | reward / tick | trips | gain vs rule | queue ticks "
+             "| failures |", "|---|---:|---:|---:|---:|---:|---:|"]
+    for name, s in sorted(scores.items(), key=lambda kv: -kv[1][key]):
+        lines.append(f"| {name} | {s['reward_per_decision']:.5f} | {s['reward_per_tick']:.6f} | "
+                     f"{s['trips']:.1f} | "
                      f"{(s['trips'] / base - 1) * 100:+.2f} % | {s['queue']:.1f} | "
                      f"{s['failure_rate']:.3f} |")
     return "\n".join(lines)

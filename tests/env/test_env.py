@@ -8,7 +8,7 @@ from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
 from fleet_torchrl.agents import HeuristicPolicy, RulePolicy, as_td_module
-from fleet_torchrl.env import FleetChargingEnv, MDPConfig
+from fleet_torchrl.env import FleetChargingEnv, MDPConfig, discount_exponent, step_ticks
 from fleet_torchrl.sim import D, SiteConfig
 
 
@@ -47,19 +47,49 @@ def test_reward_is_mean_tick_cost_and_counters_add_up():
     assert td["next", "reward"].min() < 0  # the rule queues
 
 
-def test_trip_reward_adds_one_trip_per_step():
-    """``mdp.r_trip`` (an extension, 0 by default) adds ``r_trip`` per trip to the tick costs."""
+def test_throughput_reward_of_a_step_by_hand():
+    """``mdp.reward=throughput``: tick k of a step earns ``gamma_tick^k (trip - rho)``; a step
+    of dt ticks ends with its one trip: ``g^(dt-1) - rho (1 - g^dt) / (1 - g)``."""
+    g, rho = 0.97, 0.1
+    mdp = MDPConfig(reward="throughput", gamma_tick=g, rho=rho)
     plain = FleetChargingEnv(num_sites=16, seed=3)
-    bonus = FleetChargingEnv(num_sites=16, seed=3, mdp=MDPConfig(r_trip=10.0))
+    trips = FleetChargingEnv(num_sites=16, seed=3, mdp=mdp)
     rule = as_td_module(RulePolicy())
     a = plain.rollout(40, rule, break_when_any_done=False)
-    b = bonus.rollout(40, rule, break_when_any_done=False)
+    b = trips.rollout(40, rule, break_when_any_done=False)
     assert (a["next", "queue_ticks"] == b["next", "queue_ticks"]).all()  # same dynamics
-    ticks = (a["next", "ticks"] - a["ticks"]).float()
-    ok = ~a["next", "done"]
-    # every step that is not done ends with exactly one trip, spread over the step's ticks
-    assert torch.allclose(b["next", "reward"][ok], a["next", "reward"][ok] + 10.0 / ticks[ok],
-                          atol=1e-5)
+    dt = step_ticks(b).double()
+    ok = ~b["next", "done"]
+    by_hand = g ** (dt - 1) - rho * (1 - g ** dt) / (1 - g)
+    assert torch.allclose(b["next", "reward"][ok].double(), by_hand[ok], atol=1e-5)
+    assert torch.equal(discount_exponent(b, mdp), dt.float())  # the learners' gamma_tick^dt
+    assert (discount_exponent(a, MDPConfig()) == 1).all()  # thesis: per decision
+    assert mdp.discount == g and MDPConfig().discount == 0.9
+
+
+def test_throughput_reward_of_a_failing_step_by_hand():
+    """A failure tick costs ``p_f`` (discounted like every tick) and ends the episode."""
+    site = SiteConfig(e_move=5.0, xi=60.0, soc_low=30.0)
+    g, rho, p_f = 0.9, 0.2, 50.0
+    env = FleetChargingEnv(site=site, num_sites=8, seed=0,
+                           mdp=MDPConfig(reward="throughput", gamma_tick=g, rho=rho, p_f=p_f))
+    pass_always = TensorDict({"action": torch.zeros(8, dtype=torch.int64)}, batch_size=[8])
+    td = env.reset()
+    for _ in range(50):
+        td = env.step(td.update(pass_always))
+        nxt = td["next"]
+        failed = nxt["terminated"].squeeze(-1)
+        if failed.any():
+            dt = step_ticks(td)[failed].squeeze(-1).double()
+            # every tick pays rho, the last one p_f as well, and earns its trip if a vehicle
+            # reached D in the failing tick (the only tick of a step that can hold a trip)
+            trip = (nxt["trips"] - td["trips"])[failed].squeeze(-1).double()
+            by_hand = -rho * (1 - g ** dt) / (1 - g) + (trip - p_f) * g ** (dt - 1)
+            assert torch.allclose(nxt["reward"][failed].squeeze(-1).double(), by_hand,
+                                  atol=1e-4)
+            return
+        td = env.step_mdp(td)
+    raise AssertionError("no site failed")
 
 
 def test_failure_terminates_with_failure_cost():

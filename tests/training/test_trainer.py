@@ -74,8 +74,9 @@ def test_resume_with_another_config_is_refused(tmp_path):
     _train(tiny, tmp_path, stop_after=1)
     ckpt = tmp_path / "checkpoint.ckpt"
     assert ckpt.exists()
-    with pytest.raises(ValueError, match=r"another configuration \(mdp.r_trip: 0.0 -> 1.0\)"):
-        _train([*tiny, "mdp.r_trip=1.0"], tmp_path, resume=True)
+    with pytest.raises(ValueError, match=r"another configuration \(mdp.reward: 'thesis' -> "
+                                         r"'throughput'\)"):
+        _train([*tiny, "mdp.reward=throughput"], tmp_path, resume=True)
     # run-control settings may change on resume; the checkpoint is untouched by the refusal
     _, summary = _train([*tiny, "train.checkpoint_every=2"], tmp_path, resume=True)
     assert summary["resumed"] and summary["rounds"] == 2
