@@ -82,6 +82,7 @@ def validate(cfg: Config) -> Config:
     cfg.eval.validate()
     check_range("seed", cfg.seed, 0, 2**32 - 1)
     known = (*(n for n, s in AGENTS.items() if not s.trainable), *cfg.table.train.keys())
+    cfg.table.validate()
     cfg.sweep.validate(known)
     cfg.maps.validate(known)
     cfg.objective.validate()

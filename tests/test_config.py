@@ -65,6 +65,8 @@ def test_site_variants():
     ("objective.n_sites=0", "objective.n_sites"),
     ("objective.seed=-1", "objective.seed"),
     ("eval.n_sims=0", "eval.n_sims"),
+    ("table.seeds=0", "table.seeds"),
+    ("table.jobs=0", "table.jobs"),
     ("eval.device=gpu0", "eval.device"),
 ])
 def test_bad_values_name_the_field(override, field):

@@ -127,19 +127,37 @@ def make_policy(cfg: Config, device: str | torch.device | None = None) -> Policy
     return policy
 
 
+def seed_dir(root: str | Path, name: str, seed: int) -> Path:
+    """Folder of the policy ``name`` trained with ``seed`` (``make table`` trains several)."""
+    return Path(root) / name / f"seed{seed}"
+
+
+def saved_policy_path(root: str | Path, name: str) -> Path:
+    """The saved policy a name stands for: ``<root>/<name>/policy.pt`` if there is one, else
+    the policy of the lowest training seed, ``<root>/<name>/seed<k>/policy.pt``."""
+    folder = Path(root) / name
+    if (folder / POLICY_FILE).is_file():
+        return folder / POLICY_FILE
+    seeds = sorted((int(p.parent.name[4:]), p) for p in folder.glob(f"seed*/{POLICY_FILE}")
+                   if p.parent.name[4:].isdigit())
+    return seeds[0][1] if seeds else folder / POLICY_FILE
+
+
 def load_policies(cfg: Config, names: list[str]) -> dict[str, Policy]:
     """Policies by name: baselines (``rule``, ``heuristic``) with their default parameters,
-    learned ones from ``cfg.table.policies_dir/<name>/policy.pt``."""
+    learned ones from ``cfg.table.policies_dir`` (:func:`saved_policy_path`)."""
     out: dict[str, Policy] = {}
     for name in names:
         spec = AGENTS.get(name)
         if spec is not None and not spec.trainable:
             out[name] = spec.make_policy(spec.schema()).to(cfg.eval.device)
         else:
-            out[name] = load_policy_file(Path(cfg.table.policies_dir) / name, cfg.eval.device)
+            out[name] = load_policy_file(saved_policy_path(cfg.table.policies_dir, name),
+                                         cfg.eval.device)
             out[name].name = name
     return out
 
 
 __all__ = ["AGENTS", "POLICY_FILE", "AgentSpec", "default_policy_dir", "get_agent",
-           "load_policies", "load_policy_file", "make_policy", "register"]
+           "load_policies", "load_policy_file", "make_policy", "register", "saved_policy_path",
+           "seed_dir"]

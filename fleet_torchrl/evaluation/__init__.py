@@ -8,8 +8,9 @@ from .results import (
     gain_over,
     load_result,
     save_result,
+    seed_interval,
     summarize,
 )
 
 __all__ = ["EvalConfig", "compare", "evaluate_policy", "evaluate_with", "format_table",
-           "gain_over", "load_result", "save_result", "simulate", "summarize"]
+           "gain_over", "load_result", "save_result", "seed_interval", "simulate", "summarize"]

@@ -16,6 +16,24 @@ from torch import Tensor
 from ..utils.runinfo import read_json, write_csv, write_json
 
 Z95 = 1.959963984540054
+# two-sided 95 % quantiles of Student's t for 1..10 degrees of freedom
+T95 = (12.706204736, 4.302652730, 3.182446305, 2.776445105, 2.570581836, 2.446911851,
+       2.364624252, 2.306004135, 2.262157163, 2.228138852)
+
+
+def seed_interval(values: list[float]) -> dict[str, Any]:
+    """Mean over training seeds with the half-width of its 95 % interval (Student's t, so
+    three seeds give a wide, honest interval); ``nan`` half-width for a single seed."""
+    x = torch.tensor(values, dtype=torch.float64)
+    n = x.numel()
+    if n == 0:
+        raise ValueError("no values to summarise")
+    half = float("nan")
+    if n > 1:
+        t = T95[n - 2] if n - 1 <= len(T95) else Z95
+        half = t * _std(x) / math.sqrt(n)
+    return {"mean": float(x.mean()), "ci95": half, "min": float(x.min()), "max": float(x.max()),
+            "n": n}
 
 
 def _std(x: Tensor) -> float:

@@ -14,6 +14,8 @@ class TableConfig:
     out: str = "results/table"
     policies_dir: str = "results/policies"
     runs_dir: str = "outputs/table"  # Hydra run folders of the trainings (logs, checkpoints)
+    seeds: int = 3  # training seeds per learned run: seed, seed + 1, ...
+    jobs: int = 1  # training runs at once (each its own process)
     retrain: bool = False  # train again even when a saved policy exists
     evaluate: bool = True  # false: only make sure the policies exist (make policies)
     # extra overrides of each training run (the learned policies and their budgets)
@@ -25,6 +27,11 @@ class TableConfig:
         "dqn_all": ["agent=dqn", "state=all", "agent.double_dqn=true",
                     "train.max_episodes=1440", "train.patience=40"],
     })
+
+    def validate(self, path: str = "table") -> TableConfig:
+        check_range(f"{path}.seeds", self.seeds, 1, 1000)
+        check_range(f"{path}.jobs", self.jobs, 1, 256)
+        return self
 
 
 @dataclass

@@ -23,12 +23,12 @@ ends up below the best trips gain (docs/TRAINING.md).
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 import torch
 
-from ..agents import POLICY_FILE, HeuristicPolicy, Policy, RulePolicy, load_policies
+from ..agents import HeuristicPolicy, Policy, RulePolicy, load_policies
+from ..agents.registry import saved_policy_path
 from ..env import FleetChargingEnv, MDPConfig
 from ..sim import SiteConfig
 
@@ -80,8 +80,8 @@ def candidate_policies(cfg: Config) -> dict[str, Policy]:
         pols[f"heuristic_{upper:g}"] = HeuristicPolicy(40.0, upper)
     # early charging only while another vehicle is at most 75: as little queueing, more trips
     pols["heuristic_65_75"] = HeuristicPolicy(40.0, 65.0, others_below=75.0)
-    root = Path(cfg.table.policies_dir)
-    saved = [name for name in cfg.table.train if (root / name / POLICY_FILE).is_file()]
+    root = cfg.table.policies_dir
+    saved = [name for name in cfg.table.train if saved_policy_path(root, name).is_file()]
     return {**pols, **load_policies(cfg, saved)}
 
 

@@ -16,7 +16,6 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from ..evaluation import format_table
 from ..utils.runinfo import git_commit, read_json
 
 SWEEPS = (("pc", "closure probability p_c"), ("tc", "charging ticks T_C"),
@@ -69,26 +68,20 @@ def build(results: Path, out: Path) -> str:
         parts.append("")
 
     parts += ["## Main comparison (MODEL §5 item 1)", ""]
-    table = results / "table" / "table.json"
+    table = results / "table" / "table.md"
     if table.exists():
-        rows = read_json(table)
-        size = ""
-        rule = results / "table" / "rule.json"
-        if rule.exists():
-            r = read_json(rule)
-            size = f" ({r['n_sims']} simulations x {r['ticks']} ticks, seed {r['seed']})"
-        parts += [format_table(rows), "",
-                  "Gain: mean paired difference in trips over the rule's mean, in %, with the "
-                  f"half-width of its 95% confidence interval{size}, common random numbers.",
-                  ""]
+        body = table.read_text().splitlines()
+        parts += [body[0].lstrip("# ") + ".", ""] + body[1:] + [""]
         info = results / "table" / "run_info.json"
         if info.exists():
             tt = read_json(info).get("train_time_s", {})
-            parts += ["Training wall time: " + ", ".join(
+            parts += ["Training wall time per run: " + ", ".join(
                 f"{k} {v / 60:.1f} min" if v else f"{k} (reused)" for k, v in tt.items()), ""]
-        box = results / "table" / "boxplot.png"
-        if box.exists():
-            parts += [f"![box plot]({_copy(box, figures, 'boxplot.png', report_dir)})", ""]
+        for name, title in (("boxplot.png", "box plot"),
+                            ("learning_curves.png", "learning curves")):
+            fig = results / "table" / name
+            if fig.exists():
+                parts += [f"![{title}]({_copy(fig, figures, name, report_dir)})", ""]
     else:
         parts += ["Not run yet: `make table`.", ""]
 

@@ -1,21 +1,22 @@
-"""``make table``: the main comparison of MODEL §5 item 1 in one command.
+"""``make table``: the main comparison of MODEL §5 item 1, learned rows over training seeds.
 
-    python -m fleet_torchrl.table                       # defaults: 1000 sims x 10 000 ticks
-    python -m fleet_torchrl.table eval.n_sims=200 table.retrain=true
-
-1. For each learned policy (``table.train``: tabular, DQN on ``partial``, DQN on ``all``), reuse
-   ``results/policies/<name>/policy.pt`` if it exists, else train it in a subprocess
-   (``python -m fleet_torchrl.train``) whose Hydra run directory is
-   ``outputs/table/train_<name>``; an interrupted ``make table`` resumes those runs from their
-   checkpoints. A checkpoint of another configuration (the budgets or presets changed since)
-   or an unreadable one is not resumed: its run directory is moved aside to
-   ``train_<name>.stale-<time>``.
-2. Evaluate the rule, the heuristic and the learned policies with the protocol of MODEL §4 and
-   common random numbers (``eval.*``, same seed for all: every comparison is paired).
-3. Write ``results/table/``: ``table.md``, ``table.csv``, ``table.json`` (rows with ``policy``,
-   ``trips_mean``, ``trips_std``, ``queue_mean``, ``queue_std``, ``failure_rate``, ``gain_pct``,
-   ``gain_ci95`` against the rule, and the same against the heuristic), ``boxplot.png`` (each
-   simulation's trips as % over the rule's mean) and one result JSON + CSV per policy.
+1. For each learned run of ``table.train`` (a name and the overrides of its training: the
+   learner, the state, the objective ``mdp.reward`` and the budget) and each of the
+   ``table.seeds`` training seeds ``seed, seed + 1, ...``: reuse
+   ``results/policies/<name>/seed<s>/policy.pt`` if its ``train_summary.json`` records the
+   same training configuration, else train it in a subprocess (``python -m
+   fleet_torchrl.train``) whose Hydra run directory is ``outputs/table/train_<name>_seed<s>``
+   (its TensorBoard curves are there). An interrupted ``make table`` resumes those runs from
+   their checkpoints; a checkpoint of another configuration, or an unreadable one, is moved
+   aside to ``train_<name>_seed<s>.stale-<time>``. ``table.jobs`` runs go at once.
+2. Evaluate the rule, the heuristic and every seed's policy with the protocol of MODEL §4 and
+   common random numbers (``eval.*``, one seed for all: every comparison is paired).
+3. A learned row reports the mean over its seeds of each figure, the gain over the rule as the
+   mean over seeds with a 95 % interval across seeds (Student's t) and every seed's gain.
+4. Write ``results/table/``: ``table.md``, ``table.csv``, ``table.json``, ``boxplot.png``
+   (each simulation's trips as % over the rule's mean, seeds pooled), ``learning_curves.png``
+   (evaluation gain against training time, every seed), and one result JSON + CSV per policy
+   and seed.
 """
 
 from __future__ import annotations
@@ -23,18 +24,22 @@ from __future__ import annotations
 import subprocess
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
 from ..agents import POLICY_FILE, load_policies
+from ..agents.registry import load_policy_file, seed_dir
 from ..config import Config, compose_config
-from ..evaluation import evaluate_with, format_table, gain_over, save_result
-from ..training import CHECKPOINT, checkpoint_mismatch
-from ..utils.plotting import plot_gain_boxplot, save_figure
-from ..utils.runinfo import run_info, write_csv, write_json, write_text
+from ..evaluation import evaluate_with, gain_over, save_result, seed_interval
+from ..training import CHECKPOINT, checkpoint_mismatch, training_fingerprint
+from ..utils.plotting import plot_gain_boxplot, plot_learning_curves, save_figure
+from ..utils.runinfo import read_json, run_info, write_csv, write_json, write_text
 
-ROW_KEYS = ("policy", "trips_mean", "trips_std", "queue_mean", "queue_std", "failure_rate",
-            "gain_pct", "gain_ci95", "gain_vs_heuristic_pct", "gain_vs_heuristic_ci95")
+BASELINES = ("rule", "heuristic")
+ROW_KEYS = ("policy", "objective", "seeds", "trips_mean", "trips_std", "queue_mean",
+            "failure_rate", "gain_pct", "gain_ci95", "gain_min", "gain_per_seed",
+            "gain_vs_heuristic_pct", "train_time_s")
 
 
 def set_aside(run_dir: Path) -> Path:
@@ -48,21 +53,41 @@ def set_aside(run_dir: Path) -> Path:
     return run_dir.rename(stale)
 
 
-def ensure_policy(name: str, overrides: list[str], cfg: Config) -> tuple[Path, float | None]:
-    """Path of the saved policy ``name``, training it first if needed; returns (path, seconds)."""
-    out_dir = Path(cfg.table.policies_dir) / name
-    policy = out_dir / POLICY_FILE
+def training_seeds(cfg: Config) -> list[int]:
+    return [cfg.seed + k for k in range(cfg.table.seeds)]
+
+
+def run_overrides(name: str, seed: int, cfg: Config) -> list[str]:
+    """The overrides of training run ``name`` with ``seed`` (its policy goes to its seed dir)."""
+    out_dir = seed_dir(cfg.table.policies_dir, name, seed)
+    return [*cfg.table.train[name], f"train.out_dir={out_dir}",
+            f"train.device={cfg.train.device}", f"seed={seed}"]
+
+
+def reusable(out_dir: Path, run_cfg: Config) -> bool:
+    """A saved policy is reused only with a summary that records the same training config."""
     summary = out_dir / "train_summary.json"
-    if policy.exists() and summary.exists() and not cfg.table.retrain:
-        print(f"[table] reusing {policy}")
-        return policy, None
-    run_dir = Path(cfg.table.runs_dir) / f"train_{name}"
-    run_overrides = [*overrides, f"train.out_dir={out_dir}", f"train.device={cfg.train.device}",
-                     f"seed={cfg.seed}"]
+    if not ((out_dir / POLICY_FILE).is_file() and summary.is_file()):
+        return False
+    try:
+        return read_json(summary).get("fingerprint") == training_fingerprint(run_cfg)
+    except ValueError:  # unreadable summary: train again
+        return False
+
+
+def ensure_policy(name: str, seed: int, cfg: Config) -> tuple[Path, float | None]:
+    """The saved policy ``name`` of ``seed``, training it first if needed; (path, seconds)."""
+    overrides = run_overrides(name, seed, cfg)
+    run_cfg = compose_config(overrides)
+    out_dir = Path(run_cfg.train.out_dir)
+    if not cfg.table.retrain and reusable(out_dir, run_cfg):
+        print(f"[table] reusing {out_dir / POLICY_FILE}", flush=True)
+        return out_dir / POLICY_FILE, None
+    run_dir = Path(cfg.table.runs_dir) / f"train_{name}_seed{seed}"
     resume = (run_dir / CHECKPOINT).exists() and not cfg.table.retrain
     if resume:
         try:
-            diff = checkpoint_mismatch(run_dir / CHECKPOINT, compose_config(run_overrides))
+            diff = checkpoint_mismatch(run_dir / CHECKPOINT, run_cfg)
             why = f"a run of another configuration ({'; '.join(diff[:3])})" if diff else None
         except ValueError as e:
             why = f"an unreadable checkpoint ({e})"
@@ -71,68 +96,138 @@ def ensure_policy(name: str, overrides: list[str], cfg: Config) -> tuple[Path, f
             print(f"[table] {run_dir} holds {why}: moved to {stale}, training afresh",
                   flush=True)
             resume = False
-    cmd = [sys.executable, "-m", "fleet_torchrl.train", *run_overrides,
+    cmd = [sys.executable, "-m", "fleet_torchrl.train", *overrides,
            f"hydra.run.dir={run_dir}", f"resume={str(resume).lower()}"]
-    print(f"[table] training {name}: {' '.join(cmd[2:])}", flush=True)
+    print(f"[table] training {name} seed {seed}: {' '.join(cmd[2:])}", flush=True)
     t0 = time.perf_counter()
     subprocess.run(cmd, check=True)
-    return policy, time.perf_counter() - t0
+    return out_dir / POLICY_FILE, time.perf_counter() - t0
 
 
-def build_rows(results: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
-    rule, heur = results["rule"], results["heuristic"]
-    rows = []
-    for name, res in results.items():
-        g, h = gain_over(res, rule), gain_over(res, heur)
-        rows.append({"policy": name, **{k: res[k] for k in ROW_KEYS[1:6]},
-                     "gain_pct": g["gain_pct"], "gain_ci95": g["gain_ci95"],
-                     "gain_vs_heuristic_pct": h["gain_pct"],
-                     "gain_vs_heuristic_ci95": h["gain_ci95"]})
-    return rows
+def ensure_policies(cfg: Config) -> dict[tuple[str, int], float | None]:
+    """Train what is missing (``table.jobs`` at once); seconds per (name, seed), None if reused."""
+    todo = [(name, seed) for name in cfg.table.train for seed in training_seeds(cfg)]
+    with ThreadPoolExecutor(max_workers=cfg.table.jobs) as pool:
+        times = list(pool.map(lambda job: ensure_policy(*job, cfg)[1], todo))
+    return dict(zip(todo, times, strict=True))
 
 
-def rows_markdown(rows: list[dict[str, Any]], cfg: Config, extra: str = "") -> str:
+def objective_of(name: str, cfg: Config) -> str:
+    return compose_config(list(cfg.table.train[name])).mdp.reward
+
+
+def baseline_row(name: str, res: dict[str, Any], rule: dict[str, Any],
+                 heur: dict[str, Any]) -> dict[str, Any]:
+    g = gain_over(res, rule)
+    return {"policy": name, "objective": "", "seeds": [], "trips_mean": res["trips_mean"],
+            "trips_std": res["trips_std"], "queue_mean": res["queue_mean"],
+            "failure_rate": res["failure_rate"], "gain_pct": g["gain_pct"],
+            "gain_ci95": g["gain_ci95"], "gain_min": g["gain_pct"], "gain_per_seed": [],
+            "gain_vs_heuristic_pct": gain_over(res, heur)["gain_pct"], "train_time_s": []}
+
+
+def learned_row(name: str, objective: str, per_seed: dict[int, dict[str, Any]],
+                rule: dict[str, Any], heur: dict[str, Any],
+                times: list[float | None]) -> dict[str, Any]:
+    """Mean over seeds of every figure; the gain with its 95 % interval across seeds."""
+    gains = [gain_over(res, rule)["gain_pct"] for res in per_seed.values()]
+    vs_heur = [gain_over(res, heur)["gain_pct"] for res in per_seed.values()]
+    gi = seed_interval(gains)
+
+    def mean(key: str) -> float:
+        return sum(r[key] for r in per_seed.values()) / len(per_seed)
+
+    return {"policy": name, "objective": objective, "seeds": list(per_seed),
+            "trips_mean": mean("trips_mean"), "trips_std": mean("trips_std"),
+            "queue_mean": mean("queue_mean"), "failure_rate": mean("failure_rate"),
+            "gain_pct": gi["mean"], "gain_ci95": gi["ci95"], "gain_min": gi["min"],
+            "gain_per_seed": gains, "gain_vs_heuristic_pct": sum(vs_heur) / len(vs_heur),
+            "train_time_s": times}
+
+
+def rows_markdown(rows: list[dict[str, Any]], cfg: Config) -> str:
     e = cfg.eval
     lines = [f"# Main comparison ({e.n_sims} simulations x {e.ticks} ticks, site "
-             f"'{cfg.site.name}', seed {e.seed})", "", format_table(rows), "",
-             "Gain: mean paired difference in trips over the rule's mean, in %, with the "
-             "half-width of its 95% confidence interval.", "",
-             "| policy | gain % vs heuristic | ± 95% CI |", "|---|---:|---:|"]
-    lines += [f"| {r['policy']} | {r['gain_vs_heuristic_pct']:+.2f} | "
-              f"{r['gain_vs_heuristic_ci95']:.2f} |" for r in rows]
-    return "\n".join(lines) + "\n" + extra
+             f"'{cfg.site.name}', evaluation seed {e.seed})", "",
+             "| policy | objective | training seeds | trips | queue ticks | failure rate | "
+             "gain % vs rule | ± 95 % | per seed | vs heuristic | training time |",
+             "|---|---|---|---:|---:|---:|---:|---:|---|---:|---:|"]
+    for r in rows:
+        seeds = ", ".join(map(str, r["seeds"])) or "-"
+        per_seed = ", ".join(f"{g:+.2f}" for g in r["gain_per_seed"]) or "-"
+        times = [t for t in r["train_time_s"] if t is not None]
+        ttime = f"{max(times) / 60:.1f} min max" if times else ("reused" if r["seeds"] else "-")
+        lines.append(f"| {r['policy']} | {r['objective'] or '-'} | {seeds} | "
+                     f"{r['trips_mean']:.2f} | {r['queue_mean']:.2f} | "
+                     f"{r['failure_rate']:.3f} | {r['gain_pct']:+.2f} | {r['gain_ci95']:.2f} | "
+                     f"{per_seed} | {r['gain_vs_heuristic_pct']:+.2f} | {ttime} |")
+    lines += ["", "Gain: trips over the rule's mean on the same sites, in %. Baselines: the "
+              "paired gain and its 95 % interval over the simulations. Learned rows: the mean "
+              "over their training seeds, the 95 % interval across seeds (Student's t), and "
+              "each seed's gain; trips, queue ticks and failure rate are means over the seeds."]
+    return "\n".join(lines) + "\n"
+
+
+def learning_curves(cfg: Config) -> dict[str, dict[int, list[tuple[float, float]]]]:
+    """(training seconds, evaluation gain %) of every evaluation of every saved run."""
+    curves: dict[str, dict[int, list[tuple[float, float]]]] = {}
+    for name in cfg.table.train:
+        for seed in training_seeds(cfg):
+            path = seed_dir(cfg.table.policies_dir, name, seed) / "train_summary.json"
+            if path.is_file():
+                hist = read_json(path).get("history", [])
+                curves.setdefault(name, {})[seed] = [(h["wall_s"], h["gain_pct"]) for h in hist]
+    return curves
 
 
 def run(cfg: Config) -> list[dict[str, Any]]:
     out = Path(cfg.table.out)
-    train_time: dict[str, float | None] = {}
-    for name, overrides in cfg.table.train.items():
-        train_time[name] = ensure_policy(name, list(overrides), cfg)[1]
+    times = ensure_policies(cfg)
     if not cfg.table.evaluate:
         return []
-    policies = load_policies(cfg, ["rule", "heuristic", *cfg.table.train])
     e = cfg.eval
-    results: dict[str, dict[str, Any]] = {}
-    for name, pol in policies.items():
-        res = evaluate_with(pol, cfg.site, e, name=name)
-        res["meta"] = run_info(cfg, seed=e.seed)
-        save_result(res, out / f"{name}.json")
-        results[name] = res
-        print(f"[table] {name}: {res['trips_mean']:.2f} trips, {res['queue_mean']:.2f} queue "
+    meta = run_info(cfg, seed=e.seed)
+
+    def evaluate(policy, label: str) -> dict[str, Any]:
+        res = evaluate_with(policy, cfg.site, e, name=label)
+        res["meta"] = meta
+        save_result(res, out / f"{label}.json")
+        print(f"[table] {label}: {res['trips_mean']:.2f} trips, {res['queue_mean']:.2f} queue "
               f"ticks, failure rate {res['failure_rate']:.3f} ({res['wall_time_s']:.1f} s)",
               flush=True)
-    rows = build_rows(results)
-    gains = {name: gain_over(res, results["rule"])["per_sim_gain_pct"]
-             for name, res in results.items()}
-    fig = plot_gain_boxplot(gains, f"trips per simulation vs rule mean ({e.n_sims} x {e.ticks})")
+        return res
+
+    base = {name: evaluate(pol, name) for name, pol in load_policies(cfg, list(BASELINES)).items()}
+    rule, heur = base["rule"], base["heuristic"]
+    rows = [baseline_row(name, res, rule, heur) for name, res in base.items()]
+    gains = {name: gain_over(res, rule)["per_sim_gain_pct"] for name, res in base.items()}
+    for name in cfg.table.train:
+        per_seed = {}
+        for seed in training_seeds(cfg):
+            pol = load_policy_file(seed_dir(cfg.table.policies_dir, name, seed), e.device)
+            per_seed[seed] = evaluate(pol, f"{name}_seed{seed}")
+        rows.append(learned_row(name, objective_of(name, cfg), per_seed, rule, heur,
+                                [times[(name, s)] for s in per_seed]))
+        gains[name] = [g for res in per_seed.values()
+                       for g in gain_over(res, rule)["per_sim_gain_pct"]]
+    fig = plot_gain_boxplot(gains, f"trips per simulation vs rule mean ({e.n_sims} x {e.ticks}"
+                                   f"; learned: {cfg.table.seeds} seeds pooled)")
     save_figure(fig, out / "boxplot.png")
-    timing = "\n".join(f"- training {k}: "
-                       + (f"{v:.0f} s" if v is not None else "reused saved policy")
-                       for k, v in train_time.items())
-    write_text(out / "table.md", rows_markdown(rows, cfg, "\n" + timing + "\n"))
-    write_csv(out / "table.csv", rows, ROW_KEYS)
+    curves = learning_curves(cfg)
+    if curves:
+        save_figure(plot_learning_curves(curves), out / "learning_curves.png")
+    write_text(out / "table.md", rows_markdown(rows, cfg))
+    write_csv(out / "table.csv", [{**r, "seeds": " ".join(map(str, r["seeds"])),
+                                   "gain_per_seed": " ".join(f"{g:.4f}"
+                                                             for g in r["gain_per_seed"]),
+                                   "train_time_s": " ".join(f"{t:.1f}" if t else "reused"
+                                                            for t in r["train_time_s"])}
+                                  for r in rows], ROW_KEYS)
     write_json(out / "table.json", rows)
-    write_json(out / "run_info.json", {**run_info(cfg, seed=e.seed), "train_time_s": train_time})
-    print(format_table(rows))
-    print(f"[table] wrote {out}/table.md, table.csv, table.json, boxplot.png")
+    write_json(out / "run_info.json", {**meta, "training_seeds": training_seeds(cfg),
+                                       "train_time_s": {f"{k[0]}_seed{k[1]}": v
+                                                        for k, v in times.items()}})
+    print(rows_markdown(rows, cfg))
+    print(f"[table] wrote {out}/table.md, table.csv, table.json, boxplot.png, "
+          "learning_curves.png")
     return rows

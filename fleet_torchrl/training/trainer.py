@@ -299,6 +299,7 @@ class Trainer:
                                                                     "failure_rate")},
                 "policy": str(self.out_dir / POLICY_FILE), "run_dir": str(self.run_dir),
                 "history": [asdict(h) for h in p.history],
+                "fingerprint": training_fingerprint(self.cfg),
                 "meta": run_info(self.cfg, seed=self.cfg.seed)}
 
 

@@ -91,6 +91,29 @@ def plot_gain_boxplot(gains: dict[str, list[float]], title: str):
     return fig
 
 
+def plot_learning_curves(curves: dict[str, dict[int, list[tuple[float, float]]]]):
+    """Evaluation gain over the rule against training wall time: one colour per learned run,
+    one line per training seed."""
+    fig, ax = plt.subplots(figsize=(6.4, 3.8))
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for i, (name, seeds) in enumerate(curves.items()):
+        for j, (_, pts) in enumerate(sorted(seeds.items())):
+            if not pts:
+                continue
+            t, g = zip(*pts, strict=True)
+            ax.plot([x / 60 for x in t], g, color=colours[i % len(colours)], lw=1.0, alpha=0.8,
+                    label=name if j == 0 else None)
+    ax.axhline(0.0, color="grey", lw=0.8, ls="--")
+    ax.set_xlabel("training wall time (min)")
+    ax.set_ylabel("eval gain over rule (%)")
+    lo = min((g for s in curves.values() for p in s.values() for _, g in p), default=-1.0)
+    ax.set_ylim(max(lo, -10.0) - 0.5, None)  # a failing snapshot would flatten the rest
+    ax.set_title("learning curves (training-evaluation set, one line per seed)", fontsize=10)
+    ax.legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    return fig
+
+
 PARAM_LABELS = {"p_c": "closure probability p_c", "t_c": "charging ticks T_C",
                 "n_vehicles": "vehicles N_V"}
 

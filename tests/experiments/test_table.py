@@ -1,4 +1,4 @@
-"""make table end to end on a tiny budget."""
+"""make table end to end on a tiny budget: learned rows over seeds, reuse, stale runs."""
 
 from __future__ import annotations
 
@@ -18,41 +18,54 @@ def test_table_end_to_end(tmp_path):
     from fleet_torchrl.experiments.table import run
 
     cfg = compose_config(["eval.n_sims=24", "eval.ticks=600", "eval.progress=false",
-                    f"table.out={tmp_path}/table", f"table.policies_dir={tmp_path}/policies",
-                    f"table.runs_dir={tmp_path}/runs"])
+                          "table.seeds=2", "table.jobs=2",
+                          f"table.out={tmp_path}/table", f"table.policies_dir={tmp_path}/pol",
+                          f"table.runs_dir={tmp_path}/runs"])
     cfg.table.train = {
         "tabular": ["agent=tabular", "agent.num_sites=8", "train.max_episodes=16", *TINY_TRAIN],
-        "dqn_partial": ["agent=dqn", "state=partial", "agent.num_sites=2",
-                        "agent.steps_per_round=20", "agent.updates_per_round=5",
-                        "train.max_episodes=4", *TINY_TRAIN],
+        "dqn_partial_throughput": ["agent=dqn", "state=partial", "mdp.reward=throughput",
+                                   "agent.num_sites=2", "agent.steps_per_round=20",
+                                   "agent.updates_per_round=5", "train.max_episodes=4",
+                                   *TINY_TRAIN],
     }
     rows = run(cfg)
-    assert [r["policy"] for r in rows] == ["rule", "heuristic", "tabular", "dqn_partial"]
+    assert [r["policy"] for r in rows] == ["rule", "heuristic", "tabular",
+                                           "dqn_partial_throughput"]
+    assert [r["objective"] for r in rows] == ["", "", "thesis", "throughput"]
     out = tmp_path / "table"
-    for f in ("table.md", "table.csv", "table.json", "boxplot.png", "rule.json", "rule.csv",
-              "dqn_partial.json"):
+    for f in ("table.md", "table.csv", "table.json", "boxplot.png", "learning_curves.png",
+              "rule.json", "rule.csv", "tabular_seed0.json", "dqn_partial_throughput_seed1.csv"):
         assert (out / f).exists(), f
     table = json.loads((out / "table.json").read_text())
-    for key in ("policy", "trips_mean", "trips_std", "queue_mean", "queue_std", "failure_rate",
-                "gain_pct", "gain_ci95"):
-        assert key in table[0]
     assert table[0]["gain_pct"] == 0.0  # the rule against itself
+    tab = table[2]
+    assert tab["seeds"] == [0, 1] and len(tab["gain_per_seed"]) == 2
+    assert tab["gain_pct"] == pytest.approx(sum(tab["gain_per_seed"]) / 2)
+    assert min(tab["gain_per_seed"]) == tab["gain_min"] and tab["gain_ci95"] >= 0
+    for seed in (0, 1):  # one result per seed, each paired with the rule on the same sites
+        res = json.loads((out / f"tabular_seed{seed}.json").read_text())
+        assert res["seed"] == cfg.eval.seed and res["n_sims"] == 24
     assert len(list(csv.DictReader((out / "table.csv").open()))) == 4
-    # a second run reuses the saved policies instead of training again
-    mtime = (tmp_path / "policies" / "tabular" / "policy.pt").stat().st_mtime
+    assert "± 95 %" in (out / "table.md").read_text()
+    # a second run reuses the saved policies (same recorded configuration)
+    pol = tmp_path / "pol" / "tabular" / "seed1" / "policy.pt"
+    mtime = pol.stat().st_mtime
     run(cfg)
-    assert (tmp_path / "policies" / "tabular" / "policy.pt").stat().st_mtime == mtime
-    # a missing policy whose run directory holds a checkpoint of other settings is trained
-    # afresh; the old run is kept aside, not resumed into the new one
-    (tmp_path / "policies" / "tabular" / "policy.pt").unlink()
+    assert pol.stat().st_mtime == mtime
+    # changed settings: the saved policy is not reused, the run dir's checkpoint of the old
+    # settings is set aside (nothing is deleted) and the policy is trained afresh
     cfg.table.train = {"tabular": [*cfg.table.train["tabular"], "agent.k=50"]}
+    cfg.table.seeds = 1
     run(cfg)
-    assert (tmp_path / "policies" / "tabular" / "policy.pt").exists()
-    stale = list((tmp_path / "runs").glob("train_tabular.stale-*"))
+    assert pol.stat().st_mtime == mtime  # seed 1 is no longer asked for
+    summary = json.loads((tmp_path / "pol" / "tabular" / "seed0" / "train_summary.json")
+                         .read_text())
+    assert summary["fingerprint"]["agent"]["k"] == 50.0
+    stale = list((tmp_path / "runs").glob("train_tabular_seed0.stale-*"))
     assert len(stale) == 1 and (stale[0] / "checkpoint.ckpt").exists()
-    # an unreadable checkpoint is set aside the same way (nothing is deleted)
-    (tmp_path / "policies" / "tabular" / "policy.pt").unlink()
-    (tmp_path / "runs" / "train_tabular" / "checkpoint.ckpt").write_bytes(b"garbage")
+    # an unreadable checkpoint is set aside the same way
+    (tmp_path / "pol" / "tabular" / "seed0" / "policy.pt").unlink()
+    (tmp_path / "runs" / "train_tabular_seed0" / "checkpoint.ckpt").write_bytes(b"garbage")
     run(cfg)
-    assert (tmp_path / "policies" / "tabular" / "policy.pt").exists()
-    assert len(list((tmp_path / "runs").glob("train_tabular.stale-*"))) == 2
+    assert (tmp_path / "pol" / "tabular" / "seed0" / "policy.pt").exists()
+    assert len(list((tmp_path / "runs").glob("train_tabular_seed0.stale-*"))) == 2
