@@ -4,11 +4,23 @@ Pieces, each from TorchRL: an ``MLP`` Q-network wrapped in a ``QValueActor`` (ca
 actions), ``EGreedyModule`` exploration, a ``TensorDictReplayBuffer`` on ``LazyTensorStorage``
 (optionally a ``PrioritizedSampler``), ``DQNLoss`` (MSE, optional double DQN) with a TD(0)
 value estimator that bootstraps on ``terminated`` only, ``HardUpdate`` of the target network
-every ``network.target_update`` gradient steps, and Adam with ``weight_decay`` as the L2 term.
+every ``network.target_update`` gradient steps (or ``SoftUpdate`` with ``network.tau > 0``),
+and Adam with ``weight_decay`` as the L2 term, its learning rate optionally decayed
+(``network.lr_decay``) over the run's gradient steps.
+
+Semi-Markov discounting and n-step returns. Each stored transition carries
+``steps_to_next_obs``, the exponent of the discount to its bootstrap state, which TorchRL's
+TD(0) estimator applies as ``gamma ** steps_to_next_obs``: the number of decisions
+(``mdp.reward=thesis``, ``gamma`` per decision) or of ticks (``throughput``, ``gamma_tick`` per
+tick; :func:`fleet_torchrl.env.discount_exponent`). :func:`n_step` folds up to
+``agent.n_steps`` consecutive steps of a round's ``[sites, steps]`` batch into one transition
+(discounting each reward by the exponents before it); a window stops at the end of an
+episode, before a truncated step, and at the end of the round.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -24,10 +36,13 @@ from torchrl.data import (
     TensorSpec,
 )
 from torchrl.modules import MLP, EGreedyModule, QValueActor
-from torchrl.objectives import DQNLoss, HardUpdate
+from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate
 
-from ..utils.checks import check_range
+from ..env import MDPConfig, discount_exponent
+from ..utils.checks import check_choice, check_range
 from .base import AgentConfig, Learner, Policy
+
+LR_DECAYS = ("none", "cosine", "linear")
 
 
 @dataclass
@@ -43,6 +58,8 @@ class DQNAgentConfig(AgentConfig):
     double_dqn: bool = False
     prioritized: bool = False  # prioritized replay (alpha 0.6, beta 0.4)
     updates_per_round: int = 400  # gradient steps after each collected round
+    n_steps: int = 1  # n-step returns: decisions folded into one stored transition
+    reward_scale: float = 1.0  # rewards are multiplied by this in the replay buffer
     policy: str | None = None  # saved policy for evaluation (default results/policies/dqn_<state>)
 
     def validate(self, cfg: Any = None, path: str = "agent") -> DQNAgentConfig:
@@ -53,6 +70,8 @@ class DQNAgentConfig(AgentConfig):
         check_range(f"{path}.eps_decay_frames", self.eps_decay_frames, 1, None)
         check_range(f"{path}.steps_per_round", self.steps_per_round, 1, None)
         check_range(f"{path}.updates_per_round", self.updates_per_round, 0, None)
+        check_range(f"{path}.n_steps", self.n_steps, 1, 1000)
+        check_range(f"{path}.reward_scale", self.reward_scale, 1e-6, 1e6, allowed="[1e-06, 1e6]")
         return self
 
 
@@ -69,6 +88,9 @@ class NetworkConfig:
     buffer_size: int = 50_000
     target_update: int = 500  # gradient steps between hard target-network copies
     grad_clip: float = 0.0  # max gradient norm per step; 0 = no clipping
+    tau: float = 0.0  # > 0: soft target update by tau per step instead of hard copies
+    lr_decay: str = "none"  # none | cosine | linear, over all gradient steps of the run
+    lr_final: float = 0.05  # final learning rate as a fraction of lr (lr_decay != none)
 
     def validate(self, path: str = "network") -> NetworkConfig:
         check_range(f"{path}.depth", self.depth, 0, 64)
@@ -80,7 +102,21 @@ class NetworkConfig:
         check_range(f"{path}.buffer_size", self.buffer_size, 1, 100_000_000)
         check_range(f"{path}.target_update", self.target_update, 1, None)
         check_range(f"{path}.grad_clip", self.grad_clip, 0.0, None)
+        check_range(f"{path}.tau", self.tau, 0.0, 1.0)
+        check_choice(f"{path}.lr_decay", self.lr_decay, LR_DECAYS)
+        check_range(f"{path}.lr_final", self.lr_final, 0.0, 1.0)
         return self
+
+    def lr_factor(self, total_updates: int):
+        """The learning-rate multiplier after ``k`` of ``total_updates`` gradient steps
+        (``None`` without decay)."""
+        if self.lr_decay == "none" or total_updates <= 0:
+            return None
+        floor = self.lr_final
+        if self.lr_decay == "cosine":
+            return lambda k: floor + (1 - floor) * 0.5 * (1 + math.cos(
+                math.pi * min(k / total_updates, 1.0)))
+        return lambda k: 1.0 - (1.0 - floor) * min(k / total_updates, 1.0)
 
 
 def make_qnet(net: NetworkConfig, n_obs: int) -> nn.Module:
@@ -126,22 +162,69 @@ def make_replay_buffer(net: NetworkConfig, prioritized: bool,
                                   batch_size=net.batch_size, **kw)
 
 
+def n_step(batch: TensorDictBase, n: int, gamma: float, expo: Tensor) -> TensorDictBase:
+    """``n``-step transitions from a round's ``[B, T]`` batch (see the module docstring).
+
+    ``expo``: ``[B, T, 1]`` discount exponent of each step. Returns the flat transitions whose
+    first step is not truncated, each with the discounted sum of its window's rewards, the
+    bootstrap observation and ``terminated`` of the window's last step, and
+    ``steps_to_next_obs`` (the summed exponent), which TorchRL's TD(0) estimator applies as
+    ``gamma ** steps_to_next_obs``.
+    """
+    r = batch["next", "reward"].squeeze(-1)
+    e = expo.squeeze(-1).to(r.dtype)
+    term = batch["next", "terminated"].squeeze(-1)
+    trunc = batch["next", "truncated"].squeeze(-1)
+    done = batch["next", "done"].squeeze(-1)
+    b, t_len = r.shape
+    t = torch.arange(t_len, device=r.device)
+    ret = torch.zeros_like(r)
+    ex = torch.zeros_like(r)
+    last = t.expand(b, t_len).clone()
+    alive = ~trunc
+    for i in range(n):
+        idx = (t + i).clamp(max=t_len - 1)
+        ok = alive & ((t + i) < t_len) & ~trunc[:, idx]
+        ret = ret + ok * torch.pow(gamma, ex) * r[:, idx]
+        ex = ex + ok * e[:, idx]
+        last = torch.where(ok, idx, last)
+        alive = ok & ~done[:, idx]
+    nxt_obs = batch["next", "observation"]
+    nxt_obs = nxt_obs.gather(1, last[..., None].expand(-1, -1, nxt_obs.shape[-1]))
+    out = batch.select("observation", "action").clone()
+    out.set(("next", "observation"), nxt_obs)
+    out.set(("next", "reward"), ret.unsqueeze(-1))
+    out.set(("next", "terminated"), term.gather(1, last).unsqueeze(-1))
+    out.set(("next", "done"), out["next", "terminated"].clone())
+    out.set(("next", "truncated"), torch.zeros_like(out["next", "terminated"]))
+    out.set("steps_to_next_obs", ex.unsqueeze(-1))
+    return out[~trunc]
+
+
 class DQNLearner(Learner):
-    """Everything DQN learns with; ``state_dict`` covers networks, target, epsilon and the
-    optimiser (the replay buffer is a separate checkpoint component).
+    """Everything DQN learns with; ``state_dict`` covers networks, target, epsilon, the
+    optimiser and its schedule (the replay buffer is a separate checkpoint component).
 
     A round collects ``agent.steps_per_round`` environment steps of all sites (a site whose
-    episode ends starts the next one at once) into the replay buffer, then makes
-    ``agent.updates_per_round`` gradient steps.
+    episode ends starts the next one at once), folds them into n-step transitions for the
+    replay buffer, then makes ``agent.updates_per_round`` gradient steps.
     """
 
+    KEYS = ("observation", "action", "ticks", ("next", "observation"), ("next", "reward"),
+            ("next", "done"), ("next", "terminated"), ("next", "truncated"), ("next", "ticks"))
+
     def __init__(self, agent: DQNAgentConfig, net: NetworkConfig, n_obs: int, encoding: str,
-                 action_spec: TensorSpec, gamma: float, device: torch.device | str) -> None:
+                 action_spec: TensorSpec, mdp: MDPConfig, device: torch.device | str,
+                 total_updates: int = 0) -> None:
         super().__init__()
         self.greedy = DQNPolicy(net, n_obs, encoding).to(device)
         self.qnet = self.greedy.qnet
         self.steps_per_round = agent.steps_per_round
         self.updates_per_round = agent.updates_per_round
+        self.mdp = mdp
+        self.gamma = mdp.discount
+        self.n_steps = agent.n_steps
+        self.reward_scale = agent.reward_scale
         self.actor = make_actor(self.qnet)
         self.egreedy = EGreedyModule(action_spec.clone(), eps_init=agent.eps_start,
                                      eps_end=agent.eps_end,
@@ -149,13 +232,21 @@ class DQNLearner(Learner):
         self.explore = TensorDictSequential(self.actor, self.egreedy)
         self.loss = DQNLoss(self.actor, loss_function="l2", delay_value=True,
                             double_dqn=agent.double_dqn, action_space="categorical")
-        self.loss.make_value_estimator(gamma=gamma)
-        self.target_updater = HardUpdate(self.loss, value_network_update_interval=net.target_update)
+        self.loss.make_value_estimator(gamma=self.gamma)
+        if net.tau > 0:
+            self.target_updater = SoftUpdate(self.loss, tau=net.tau)
+        else:
+            self.target_updater = HardUpdate(self.loss,
+                                             value_network_update_interval=net.target_update)
         self.optimizer = torch.optim.Adam(self.loss.value_network_params.values(True, True),
                                           lr=net.lr, weight_decay=net.weight_decay)
+        factor = net.lr_factor(total_updates)
+        self.scheduler = (torch.optim.lr_scheduler.LambdaLR(self.optimizer, factor)
+                          if factor is not None else None)
         self.buffer = make_replay_buffer(net, agent.prioritized, device)
         self.grad_clip = net.grad_clip
         self.prioritized = agent.prioritized
+        self._steps: list[TensorDictBase] = []
 
     # ------------------------------------------------------------------ Learner
     def exploration(self) -> float:
@@ -170,20 +261,30 @@ class DQNLearner(Learner):
     def checkpoint_components(self) -> dict[str, Any]:
         return {"replay_buffer": self.buffer}
 
+    def start_round(self, round_idx: int) -> None:
+        self._steps = []
+
     def observe(self, td: TensorDictBase, learn: torch.Tensor) -> None:
-        """Store the transitions of the sites in ``learn`` and advance epsilon by the step's
-        frames. The loop leaves out steps truncated by the tick budget: their next
-        observation is not a decision state (see :mod:`fleet_torchrl.training`)."""
+        """Keep the step for the round's n-step folding and advance epsilon by its frames.
+        Truncated steps are left out when folding (their next observation is no decision
+        state, see :mod:`fleet_torchrl.training`)."""
         self.egreedy.step(td.numel())
-        flat = td.reshape(-1)[learn.reshape(-1)]
-        self.buffer.extend(flat.select("observation", "action", ("next", "observation"),
-                                       ("next", "reward"), ("next", "done"),
-                                       ("next", "terminated"), ("next", "truncated")))
+        self._steps.append(td.select(*self.KEYS).clone())
 
     def update(self) -> dict[str, float]:
-        """The round's gradient steps; logs the mean loss and the buffer's size."""
+        """Store the round's transitions, then its gradient steps; logs the mean loss."""
+        if self._steps:
+            self.store(torch.stack(self._steps, dim=1))
+            self._steps = []
         return {"loss/td": self.train_steps(self.updates_per_round),
                 "train/buffer_size": len(self.buffer)}
+
+    def store(self, batch: TensorDictBase) -> None:
+        """Fold a ``[B, T]`` batch of steps into n-step transitions in the replay buffer."""
+        trans = n_step(batch, self.n_steps, self.gamma, discount_exponent(batch, self.mdp))
+        if self.reward_scale != 1.0:  # same greedy policy, larger Q-differences
+            trans.set(("next", "reward"), trans["next", "reward"] * self.reward_scale)
+        self.buffer.extend(trans)
 
     def train_steps(self, steps: int) -> float:
         """``steps`` gradient steps; returns the mean loss (nan if the buffer is too small)."""
@@ -199,25 +300,32 @@ class DQNLearner(Learner):
                 torch.nn.utils.clip_grad_norm_(self.loss.value_network_params.values(True, True),
                                                self.grad_clip)
             self.optimizer.step()
+            if self.scheduler is not None:
+                self.scheduler.step()
             self.target_updater.step()
             if self.prioritized:
                 self.buffer.update_tensordict_priority(sample)
             total += float(loss.detach())
         return total / steps
 
-    def state_dict(self, *args, **kwargs):  # networks + target + eps + optimizer
+    def state_dict(self, *args, **kwargs):  # networks + target + eps + optimizer + schedule
         sd = super().state_dict(*args, **kwargs)
         sd["_optimizer"] = self.optimizer.state_dict()
-        sd["_target_counter"] = self.target_updater.counter
+        sd["_target_counter"] = getattr(self.target_updater, "counter", 0)
+        if self.scheduler is not None:
+            sd["_scheduler"] = self.scheduler.state_dict()
         return sd
 
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
         state_dict = dict(state_dict)
         opt = state_dict.pop("_optimizer", None)
         counter = state_dict.pop("_target_counter", None)
+        sched = state_dict.pop("_scheduler", None)
         out = super().load_state_dict(state_dict, strict=strict, assign=assign)
         if opt is not None:
             self.optimizer.load_state_dict(opt)
-        if counter is not None:
+        if sched is not None and self.scheduler is not None:
+            self.scheduler.load_state_dict(sched)
+        if counter is not None and hasattr(self.target_updater, "counter"):
             self.target_updater.counter = counter
         return out

@@ -8,6 +8,7 @@ config); learners are entries with ``make_learner`` (their policies are loaded f
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -76,8 +77,9 @@ def _tabular_learner(cfg: Config, env: FleetChargingEnv) -> Learner:
 
 def _dqn_learner(cfg: Config, env: FleetChargingEnv) -> Learner:
     n_obs = env.observation_spec["observation"].shape[-1]
+    rounds = math.ceil(cfg.train.max_episodes / cfg.agent.num_sites)
     return DQNLearner(cfg.agent, cfg.network, n_obs, cfg.state.name, env.action_spec,
-                      cfg.mdp.gamma, env.device)
+                      cfg.mdp, env.device, total_updates=rounds * cfg.agent.updates_per_round)
 
 
 register(AgentSpec("rule", RuleAgentConfig, RulePolicy, make_policy=RulePolicy.from_config))

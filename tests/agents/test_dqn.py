@@ -1,4 +1,4 @@
-"""DQN on TorchRL: the loss falls, gradient clipping bounds the step."""
+"""DQN on TorchRL: n-step folding by hand, the loss falls, gradient clipping bounds the step."""
 
 from __future__ import annotations
 
@@ -9,10 +9,7 @@ import torch
 
 from fleet_torchrl.config import compose_config
 
-# ---------------------------------------------------------------------- training
 
-
-# ---------------------------------------------------------------------- DQN
 def test_dqn_loss_falls_on_a_fixed_buffer():
     from fleet_torchrl.agents.dqn import DQNLearner
     from fleet_torchrl.env import FleetChargingEnv
@@ -20,13 +17,14 @@ def test_dqn_loss_falls_on_a_fixed_buffer():
     torch.manual_seed(0)
     cfg = compose_config(["agent=dqn", "network.target_update=100000"])
     env = FleetChargingEnv(num_sites=8, seed=0)
-    lrn = DQNLearner(cfg.agent, cfg.network, 3, "partial", env.action_spec, 0.9, "cpu")
+    lrn = DQNLearner(cfg.agent, cfg.network, 3, "partial", env.action_spec, cfg.mdp, "cpu")
     batch = env.rollout(60, lrn.explore, break_when_any_done=False)
-    lrn.observe(batch, ~batch["next", "truncated"].squeeze(-1))
+    lrn.store(batch)
     first = lrn.train_steps(20)
     for _ in range(10):
         last = lrn.train_steps(40)
     assert math.isfinite(first) and last < 0.5 * first
+    lrn.observe(batch[:, 0], torch.ones(8, dtype=torch.bool))
     assert lrn.exploration() < 1.0  # epsilon annealed by the observed frames
 
 
@@ -41,12 +39,12 @@ def test_dqn_grad_clip_bounds_the_step():
     for clip in (0.0, 1e-3):
         torch.manual_seed(0)
         cfg = compose_config(["agent=dqn", f"network.grad_clip={clip}", "network.weight_decay=0"])
-        lrn = DQNLearner(cfg.agent, cfg.network, 3, "partial", env.action_spec, 0.9, "cpu")
+        lrn = DQNLearner(cfg.agent, cfg.network, 3, "partial", env.action_spec, cfg.mdp, "cpu")
         params = lrn.loss.value_network_params
         lrn.optimizer = torch.optim.SGD(params.values(True, True), lr=1.0)
         if batch is None:
             batch = env.rollout(60, lrn.explore, break_when_any_done=False)
-        lrn.observe(batch, ~batch["next", "truncated"].squeeze(-1))
+        lrn.store(batch)
         lrn.buffer.sample = lambda b=lrn.buffer[:64]: b  # same sample for both runs
         before = params.clone().detach()
         lrn.train_steps(1)
@@ -54,3 +52,36 @@ def test_dqn_grad_clip_bounds_the_step():
         steps[clip] = float(torch.cat([v.flatten() for v in delta.values()]).norm())
     assert steps[0.0] > 1e-3  # unclipped gradients are larger than the cap here
     assert steps[1e-3] == pytest.approx(1e-3, rel=1e-3)
+
+
+def test_n_step_folds_rewards_with_each_transitions_discount_exponent():
+    """Windows of up to n steps: the reward of step i is discounted by gamma ** (exponents of
+    the steps before it); a window stops at a done step and at the end of the batch, and a
+    truncated step is never the start or part of a transition."""
+    from tensordict import TensorDict
+
+    from fleet_torchrl.agents.dqn import n_step
+
+    def col(*v, dtype=torch.float32):
+        return torch.tensor([v], dtype=dtype).unsqueeze(-1)
+
+    batch = TensorDict({
+        "observation": torch.arange(5.0).view(1, 5, 1), "action": torch.zeros(1, 5, 1),
+        "next": {"observation": torch.arange(1.0, 6.0).view(1, 5, 1),
+                 "reward": col(1.0, 2.0, 3.0, 4.0, 5.0),
+                 "terminated": col(False, True, False, False, False, dtype=torch.bool),
+                 "truncated": col(False, False, False, False, True, dtype=torch.bool),
+                 "done": col(False, True, False, False, True, dtype=torch.bool)}},
+        batch_size=[1, 5])
+    expo = col(3.0, 2.0, 1.0, 4.0, 1.0)  # e.g. the ticks of each step
+    g = 0.5
+    out = n_step(batch, 2, g, expo)
+    assert out.shape == (4,)  # the truncated step 4 starts no transition
+    assert out["next", "reward"].squeeze(-1).tolist() == pytest.approx(
+        [1 + g ** 3 * 2, 2, 3 + g * 4, 4])  # step 1 ends its episode; step 4 is truncated
+    assert out["steps_to_next_obs"].squeeze(-1).tolist() == [5.0, 2.0, 5.0, 4.0]
+    assert out["next", "observation"].squeeze(-1).tolist() == [2.0, 2.0, 4.0, 4.0]
+    assert out["next", "terminated"].squeeze(-1).tolist() == [True, True, False, False]
+    one = n_step(batch, 1, g, expo)  # n = 1: the plain transitions, exponent of each step
+    assert one["next", "reward"].squeeze(-1).tolist() == [1.0, 2.0, 3.0, 4.0]
+    assert one["steps_to_next_obs"].squeeze(-1).tolist() == [3.0, 2.0, 1.0, 4.0]

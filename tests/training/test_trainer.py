@@ -108,3 +108,19 @@ def test_untrainable_agent_is_refused(tmp_path):
         Trainer(compose_config(["agent=rule"]), tmp_path)
     with pytest.raises(ValueError, match="state.name='all' is invalid for agent=tabular"):
         compose_config(["agent=tabular", "state=all"])
+
+
+@pytest.mark.parametrize("objective", ["thesis", "throughput"])
+@pytest.mark.parametrize("learner", ["tabular", "dqn"])
+def test_every_learner_trains_with_every_objective(tmp_path, learner, objective):
+    """A tiny run per learner and objective: it trains, evaluates, saves a loadable policy."""
+    tiny = {"tabular": [*TINY_TAB, "train.max_episodes=64"],
+            "dqn": [*TINY_DQN, "agent.n_steps=3", "network.lr_decay=cosine",
+                    "network.tau=0.01"]}[learner]
+    tr, summary = _train([*tiny, f"mdp.reward={objective}", "train.tensorboard=false"],
+                         tmp_path)
+    assert summary["best"] is not None and summary["frames"] > 0
+    assert summary["fingerprint"]["mdp"]["reward"] == objective
+    pol = load_policy_file(tmp_path / "policy")
+    obs = torch.rand(32, 3)
+    assert torch.equal(pol(obs), tr.best_policy(obs))
