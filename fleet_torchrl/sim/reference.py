@@ -1,0 +1,199 @@
+"""An independent numpy reference of the site model (MODEL §1), for tests and benchmarks.
+
+It was written from the description in ``docs/MODEL.md`` §1, not from
+:mod:`fleet_torchrl.sim.site`: occupancy is a per-site boolean array ``[B, N]`` and every rule
+of the tick is its own explicit mask, so that it can cross-check the torch simulator (and any
+faster variant of it) tick by tick. It shares only the interface with the torch version: the
+state layout (``[V, B]`` vehicle arrays, ``[B]`` site arrays) and float32 energy arithmetic
+performed in the same order (add the tick's delta, then cap at 100), so that states can be
+compared bit for bit. Initial states and closure draws are taken from the torch
+:class:`~fleet_torchrl.sim.site.Site` (common random numbers, MODEL §1.4).
+
+Vectorised over sites; nothing here is meant to be fast.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, fields
+
+import numpy as np
+import torch
+
+from .config import SiteConfig
+from .site import Site, SiteState
+
+NODE_D, NODE_C, NODE_B, NODE_M = 0, 1, 2, 3  # decision, charger, bypass, merge (MODEL §1.1)
+F32 = np.float32
+
+
+@dataclass
+class ReferenceState:
+    """State of ``B`` sites as numpy arrays, with the shapes and dtypes of ``SiteState``."""
+
+    pos: np.ndarray  # [V, B] int64 node of each vehicle
+    soc: np.ndarray  # [V, B] float32 battery level
+    left: np.ndarray  # [V, B] int64 charging ticks left
+    charge: np.ndarray  # [B] bool decision of the vehicle on D
+    tick: np.ndarray  # [B] int64 ticks run so far
+
+    @classmethod
+    def from_torch(cls, s: SiteState) -> ReferenceState:
+        """A numpy copy of a torch :class:`SiteState`."""
+        return cls(**{f.name: getattr(s, f.name).detach().cpu().numpy().copy()
+                      for f in fields(cls)})
+
+    def to_torch(self) -> SiteState:
+        """A torch (CPU) copy of this state."""
+        return SiteState(**{f.name: torch.from_numpy(getattr(self, f.name).copy())
+                            for f in fields(self)})
+
+    def copy(self) -> ReferenceState:
+        return ReferenceState(**{f.name: getattr(self, f.name).copy() for f in fields(self)})
+
+    def differences(self, other: SiteState | ReferenceState) -> list[str]:
+        """Names of the fields that differ from ``other``'s (soc compared bit for bit)."""
+        if isinstance(other, SiteState):
+            other = ReferenceState.from_torch(other)
+        out = []
+        for f in fields(self):
+            mine, theirs = getattr(self, f.name), getattr(other, f.name)
+            if mine.dtype == F32:  # bit-identical, not merely equal in value
+                mine, theirs = mine.view(np.uint32), theirs.astype(F32).view(np.uint32)
+            if mine.shape != theirs.shape or not np.array_equal(mine, theirs):
+                out.append(f.name)
+        return out
+
+
+class ReferenceSite:
+    """The tick rules of MODEL §1.2, one explicit numpy mask per rule."""
+
+    def __init__(self, cfg: SiteConfig) -> None:
+        self.cfg = cfg
+        self.n_nodes = cfg.n_nodes
+        self.closed_node = cfg.closed_node
+        # energy deltas as float32 of the Python values, as the torch version stores them
+        self.d_idle, self.d_move = F32(-cfg.e_idle), F32(-cfg.e_move)
+        self.d_charge = F32(cfg.e_charge / cfg.t_c)
+        self.soc_low = F32(cfg.soc_low)
+        # next node when passing (the charging variant differs only on D): MODEL §1.1 table
+        nxt = np.arange(1, cfg.n_nodes + 1, dtype=np.int64)  # road: k -> k + 1
+        nxt[NODE_D], nxt[NODE_C], nxt[NODE_B] = NODE_B, NODE_M, NODE_M
+        nxt[cfg.n_nodes - 1] = NODE_D  # the last road node leads back to D
+        self.next_node = nxt
+
+    def occupancy(self, pos: np.ndarray) -> np.ndarray:
+        """``[B, N]`` bool: which nodes hold a vehicle."""
+        occ = np.zeros((pos.shape[1], self.n_nodes), dtype=bool)
+        occ[np.arange(pos.shape[1])[None, :], pos] = True
+        return occ
+
+    def targets(self, pos: np.ndarray, charge: np.ndarray) -> np.ndarray:
+        """Step 2: ``[V, B]`` next node of every vehicle (D: C if it charges, else B)."""
+        return np.where((pos == NODE_D) & charge[None, :], NODE_C, self.next_node[pos])
+
+    def moves(self, pos: np.ndarray, left: np.ndarray, target: np.ndarray,
+              closed: np.ndarray) -> np.ndarray:
+        """Step 3: ``[V, B]`` bool, who moves (target free at the start, not a closed X,
+        not charging; M admits one vehicle, the one from B before the one from C)."""
+        occ = self.occupancy(pos)
+        sites = np.arange(pos.shape[1])[None, :]
+        free = ~occ[sites, target]
+        open_ = ~(closed[None, :] & (target == self.closed_node))
+        charging = (pos == NODE_C) & (left > 0)
+        move = free & open_ & ~charging
+        bypass_enters_m = (move & (pos == NODE_B)).any(0)
+        return move & ~((pos == NODE_C) & bypass_enters_m[None, :])
+
+    def energy(self, soc: np.ndarray, charging: np.ndarray, move: np.ndarray) -> np.ndarray:
+        """Step 4: new ``soc`` (float32: add the tick's delta, then cap at 100)."""
+        delta = np.where(charging, self.d_charge, np.where(move, self.d_move, self.d_idle))
+        return np.minimum(soc + delta.astype(F32), F32(100.0))
+
+    def charger(self, left: np.ndarray, charging: np.ndarray, soc: np.ndarray,
+                entered_c: np.ndarray) -> np.ndarray:
+        """Steps 4-5: charging ticks left after the tick."""
+        left = left - charging
+        if self.cfg.leave_when_full:
+            left = np.where(charging & (soc == F32(100.0)), 0, left)
+        return np.where(entered_c, self.cfg.t_c, left)
+
+    def tick(self, state: ReferenceState, closed: np.ndarray) -> dict[str, np.ndarray]:
+        """Advance every site by one tick, in place; ``closed``: ``[B]`` bool (step 1).
+
+        Returns ``arrived`` (a trip: a move from N-1 into D, a decision is needed),
+        ``queue`` and ``failed``, each ``[B]`` bool.
+        """
+        pos, left, charge = state.pos, state.left, state.charge
+        closed = np.asarray(closed, dtype=bool)
+        target = self.targets(pos, charge)
+        move = self.moves(pos, left, target, closed)
+        charging = (pos == NODE_C) & (left > 0)
+        soc = self.energy(state.soc, charging, move)
+        entered_c = move & (target == NODE_C)
+        on_d = pos == NODE_D
+        queue = charge & (on_d & ~move).any(0)  # it wants C (charge) and did not get there
+        arrived = (move & (pos == self.n_nodes - 1)).any(0)
+        state.left = self.charger(left, charging, soc, entered_c)
+        state.soc = soc
+        state.pos = np.where(move, target, pos)
+        # the decision belongs to the vehicle on D; MODEL §1.5 clears it when one arrives
+        state.charge = charge & ~arrived
+        state.tick = state.tick + 1
+        failed = (soc < self.soc_low).any(0)
+        return {"arrived": arrived, "queue": queue, "failed": failed}
+
+    @staticmethod
+    def decide(state: ReferenceState, mask: np.ndarray, charge: np.ndarray) -> None:
+        """Step 8: record the decision ``charge`` ([B], bool or 0/1) of the sites in ``mask``."""
+        state.charge = np.where(np.asarray(mask, bool), np.asarray(charge).astype(bool),
+                                state.charge)
+
+
+def partial_obs(state: ReferenceState, t_c: int) -> np.ndarray:
+    """The ``partial`` encoding (MODEL §2.4) as float32 ``[B, 3]``: soc_D, lowest soc of the
+    vehicles on neither D nor C (100 if none), TC; socs scaled by float32(0.01) and TC by
+    float32(1 / (T_C + 1)), as the torch encoding does."""
+    pos, soc = state.pos, state.soc
+    soc_d = np.where(pos == NODE_D, soc, F32(0.0)).sum(0, dtype=F32)
+    others = np.where(pos > NODE_C, soc, F32(100.0)).min(0)
+    tc = np.where(pos == NODE_C, state.left + 1, 0).sum(0).astype(F32)
+    scale = np.array([0.01, 0.01, 1.0 / (t_c + 1)], dtype=F32)
+    return np.stack([soc_d, others, tc], axis=1).astype(F32) * scale
+
+
+def rule_policy(obs: np.ndarray, threshold: float = 40.0) -> np.ndarray:
+    """The rule (MODEL §3): charge iff ``soc_D / 100 <= threshold / 100``, compared in
+    float32 as torch compares a float32 tensor with a Python float. ``[B]`` int64."""
+    return (obs[:, 0] <= F32(threshold / 100.0)).astype(np.int64)
+
+
+def simulate_reference(policy_fn: Callable[[np.ndarray], np.ndarray], cfg: SiteConfig,
+                       n_sims: int, ticks: int, seed: int) -> dict[str, np.ndarray]:
+    """The evaluation protocol (MODEL §4) on the reference site.
+
+    Initial states and closures come from the torch ``Site`` (common random numbers), so the
+    result is comparable with :func:`fleet_torchrl.evaluation.simulate` under the same seed.
+    ``policy_fn`` maps the ``partial`` observation ``[B, 3]`` to actions ``[B]``. A failed site
+    keeps moving but stops counting. Returns per-simulation ``trips``, ``queue``, ``failed``
+    and ``ticks_survived``.
+    """
+    site, ref = Site(cfg), ReferenceSite(cfg)
+    idx = torch.arange(n_sims, dtype=torch.int64)
+    s0, needs = site.init_state(seed, idx)
+    closed = site.closures(seed, idx, torch.arange(ticks)[:, None]).numpy()  # [T, B]
+    state = ReferenceState.from_torch(s0)
+    ref.decide(state, needs.numpy(), policy_fn(partial_obs(state, cfg.t_c)))
+    trips = np.zeros(n_sims, dtype=np.int64)
+    queue = np.zeros(n_sims, dtype=np.int64)
+    survived = np.zeros(n_sims, dtype=np.int64)
+    alive = np.ones(n_sims, dtype=bool)
+    for t in range(ticks):
+        out = ref.tick(state, closed[t])
+        survived += alive
+        trips += out["arrived"] & alive
+        queue += out["queue"] & alive
+        alive &= ~out["failed"]
+        if out["arrived"].any():
+            ref.decide(state, out["arrived"], policy_fn(partial_obs(state, cfg.t_c)))
+    return {"trips": trips, "queue": queue, "failed": ~alive, "ticks_survived": survived}
