@@ -28,6 +28,7 @@ CONFIGS = {
     "eight_nodes": SiteConfig(n_nodes=8, closed_node=6),
 }
 OPEN = np.array([False])
+encode = get_encoding("partial")
 
 
 def one_site(vehicles: list[tuple], charge: bool = False) -> ReferenceState:
@@ -70,6 +71,8 @@ def test_tick_by_tick_against_the_reference(name):
             assert np.array_equal(getattr(out, key).numpy(), out_ref[key]), (name, t, key)
             counts[key] += int(out_ref[key].sum())
         counts["full"] += int((r.soc == 100.0).sum())
+        obs = partial_obs(r, cfg.t_c).view(np.uint32)
+        assert np.array_equal(obs, encode(site, s).numpy().view(np.uint32)), (name, t)
         needs = out.arrived
     # the random run exercised every rule that the comparison is meant to check
     assert min(counts.values()) > 0, counts
@@ -84,18 +87,29 @@ def test_protocol_matches_simulate_with_the_rule():
     assert got["trips"].min() > 0 and got["queue"].sum() > 0
 
 
+def test_protocol_matches_simulate_with_failures():
+    # a rule that charges too late: some sites fail, and then stop counting
+    cfg = SiteConfig()
+    expected = simulate(RulePolicy(threshold=37.5), cfg, 64, 2000, seed=1)
+    got = simulate_reference(lambda obs: rule_policy(obs, 37.5), cfg, 64, 2000, seed=1)
+    for key in ("trips", "queue", "failed", "ticks_survived"):
+        assert np.array_equal(expected[key].numpy(), got[key]), key
+    assert 0 < got["failed"].sum() < 64
+
+
 def test_rule_decisions_match_the_torch_rule_at_the_threshold():
-    soc = np.nextafter(np.float32(40.0), [np.float32(0), np.float32(0), np.float32(100)])
-    soc = np.concatenate([soc, np.linspace(39.9, 40.1, 2001, dtype=np.float32)])
+    forty = np.float32(40.0)
+    edge = [np.nextafter(forty, np.float32(0)), forty, np.nextafter(forty, np.float32(100))]
+    soc = np.concatenate([np.array(edge), np.linspace(39.9, 40.1, 2001, dtype=np.float32)])
     state = ReferenceState(pos=np.zeros((1, soc.size), np.int64), soc=soc[None, :],
                            left=np.zeros((1, soc.size), np.int64),
                            charge=np.zeros(soc.size, bool), tick=np.zeros(soc.size, np.int64))
     site = Site(SiteConfig())
-    obs_torch = get_encoding("partial")(site, state.to_torch())
+    obs_torch = encode(site, state.to_torch())
     obs = partial_obs(state, site.t_c)
     assert np.array_equal(obs_torch.numpy().view(np.uint32), obs.view(np.uint32))
     assert np.array_equal(RulePolicy()(obs_torch).numpy(), rule_policy(obs))
-    assert rule_policy(obs)[1] == 1 and rule_policy(obs)[2] == 0  # 40 charges, next float no
+    assert rule_policy(obs)[:3].tolist() == [1, 1, 0]  # 40 charges, the next float32 does not
 
 
 # ------------------------------------------------------------ the reference on its own
