@@ -67,10 +67,12 @@ class Learner(nn.Module, ABC):
 
     ``steps_per_round``: environment steps per round, every site resetting itself when its
     episode ends (``None``: one episode per site, sites that are done stop learning and the
-    round ends when all are done).
+    round ends when all are done). ``reset_each_round``: whether a round starts from fresh
+    resets (with ``steps_per_round`` set, ``False`` lets episodes run on across rounds).
     """
 
     steps_per_round: int | None = None
+    reset_each_round: bool = True
 
     def start_round(self, round_idx: int) -> None:  # noqa: B027 (optional hook)
         """Called before the first step of round ``round_idx`` (0-based)."""

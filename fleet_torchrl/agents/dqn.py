@@ -59,6 +59,7 @@ class DQNAgentConfig(AgentConfig):
     prioritized: bool = False  # prioritized replay (alpha 0.6, beta 0.4)
     updates_per_round: int = 400  # gradient steps after each collected round
     n_steps: int = 1  # n-step returns: decisions folded into one stored transition
+    reset_each_round: bool = True  # false: episodes run on across rounds
     reward_scale: float = 1.0  # rewards are multiplied by this in the replay buffer
     policy: str | None = None  # saved policy for evaluation (default results/policies/dqn_<state>)
 
@@ -221,6 +222,7 @@ class DQNLearner(Learner):
         self.qnet = self.greedy.qnet
         self.steps_per_round = agent.steps_per_round
         self.updates_per_round = agent.updates_per_round
+        self.reset_each_round = agent.reset_each_round
         self.mdp = mdp
         self.gamma = mdp.discount
         self.n_steps = agent.n_steps

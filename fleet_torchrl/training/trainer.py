@@ -12,9 +12,12 @@ steps (``learner.act`` -> ``env`` -> ``learner.observe``), then ``learner.update
   collectors do).
 
 Starting every round from fresh resets makes a round boundary a clean checkpoint: the
-environment's whole state there is its seed and episode counters. Steps truncated by the
-tick budget end between two decisions, so their next observation is no decision state; no
-learner learns from them.
+environment's whole state there is its seed and episode counters. A learner with
+``reset_each_round = False`` lets episodes run on from one round into the next; a run of it
+that is resumed starts its next round from fresh resets (the episodes in flight at the
+checkpoint are dropped), so it continues close to, not exactly as, an uninterrupted run.
+Steps truncated by the tick budget end between two decisions, so their next observation is
+no decision state; no learner learns from them.
 
 Every ``eval_every`` rounds the greedy policy is evaluated with the protocol of MODEL §4 on a
 fixed common-random-numbers set (``train.eval_*``), next to the rule on the same set. Policies
@@ -55,8 +58,9 @@ if TYPE_CHECKING:
 class EpisodeStats:
     """Per-round statistics of the episodes that end, from the environment's counters."""
 
-    def __init__(self, n: int, device: torch.device) -> None:
-        self.reward = torch.zeros(n, device=device)  # running reward of each site's episode
+    def __init__(self, n: int, device: torch.device, reward: torch.Tensor | None = None) -> None:
+        # running reward of each site's episode (carried over when episodes span rounds)
+        self.reward = torch.zeros(n, device=device) if reward is None else reward
         self.ended: dict[str, list[torch.Tensor]] = {k: [] for k in
                                                      ("reward", "trips", "queue", "failed")}
         self.frames = 0
@@ -100,6 +104,8 @@ class Trainer:
         self.device = torch.device(cfg.train.device)
         self.n_rounds = math.ceil(cfg.train.max_episodes / cfg.agent.num_sites)
         self.progress = Progress()
+        self._next: TensorDictBase | None = None
+        self._episode_reward: torch.Tensor | None = None
         torch.manual_seed(cfg.seed)
         self.setup_env()
         self.setup_learner()
@@ -170,9 +176,11 @@ class Trainer:
         env, learner = self.env, self.learner
         learner.start_round(self.progress.round)
         steps = learner.steps_per_round
-        td = env.reset()
+        fresh = steps is None or learner.reset_each_round or self._next is None
+        td = env.reset() if fresh else self._next
         live = torch.ones(env.num_sites, dtype=torch.bool, device=self.device)
-        stats = EpisodeStats(env.num_sites, self.device)
+        stats = EpisodeStats(env.num_sites, self.device,
+                             None if fresh else self._episode_reward)
         t = 0
         while (steps is None and bool(live.any())) or (steps is not None and t < steps):
             td = learner.act(td)
@@ -187,6 +195,8 @@ class Trainer:
                 live = live & ~td["next", "done"].squeeze(-1)
             td = root
             t += 1
+        self._next = td  # where the next round goes on when episodes run across rounds
+        self._episode_reward = stats.reward
         out = stats.summary()
         out.update(learner.update())
         out["frames"] = stats.frames

@@ -124,3 +124,16 @@ def test_every_learner_trains_with_every_objective(tmp_path, learner, objective)
     pol = load_policy_file(tmp_path / "policy")
     obs = torch.rand(32, 3)
     assert torch.equal(pol(obs), tr.best_policy(obs))
+
+
+def test_episodes_run_on_across_rounds_when_asked(tmp_path):
+    """agent.reset_each_round=false: a round goes on from where the last one stopped."""
+    tiny = [*TINY_DQN, "agent.reset_each_round=false", "agent.steps_per_round=5",
+            "train.tensorboard=false"]
+    tr, _ = _train(tiny, tmp_path / "on", stop_after=1)
+    ticks1, episodes1 = tr._next["ticks"].squeeze(-1).clone(), tr.env.episodes.clone()
+    tr.run(stop_after_rounds=1)
+    ticks2 = tr._next["ticks"].squeeze(-1)
+    same_episode = tr.env.episodes == episodes1  # no reset of the site in round 2
+    assert same_episode.any()
+    assert (ticks2[same_episode] > ticks1[same_episode]).all()  # its episode went on
