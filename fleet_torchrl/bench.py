@@ -6,7 +6,9 @@ Measures, for batch sizes ``B`` in {1, 64, 1024, 8192} (median of ``--repeats`` 
 * ``eval``: the evaluation loop with the rule policy deciding in the loop, site-ticks/s;
 * ``env``: TorchRL environment steps (decision epochs) per second with the rule policy;
 
-and the wall time of the thesis protocol for one policy (1000 sims x 10 000 ticks).
+``eval`` and ``env`` with the eager tick loop and with the fused kernel (sim/fused.py, CPU);
+and the wall time of the thesis protocol for one policy (1000 sims x 10 000 ticks): eager,
+fused and the numpy reference, as ratios to the reference, with the compile time apart.
 Results print as Markdown (paste into docs/BENCHMARKS.md) and, with ``--out``, as JSON.
 """
 
@@ -17,10 +19,8 @@ import platform
 
 import torch
 
-from .agents import RulePolicy
-from .evaluation import simulate
-from .experiments.bench import bench_env, bench_eval, bench_sim, median_time
-from .sim import SiteConfig
+from .experiments.bench import bench_env, bench_eval, bench_protocol, bench_sim
+from .sim import fused
 from .utils.runinfo import package_versions, write_json
 
 
@@ -31,40 +31,64 @@ def main(argv: list[str] | None = None) -> dict:
                    help="site-ticks per measurement (ticks = site_ticks / B, 200..10000)")
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--device", default="cpu")
+    p.add_argument("--env-steps", type=int, default=None,
+                   help="environment steps per measurement (default 200, 50 from B=1024)")
     p.add_argument("--skip-protocol", action="store_true")
     p.add_argument("--out", default=None, help="also write the figures as JSON")
     a = p.parse_args(argv)
 
+    has_fused = torch.device(a.device).type == "cpu" and fused.available()
     rows = []
     for b in a.batches:
         ticks = int(min(10_000, max(200, a.site_ticks / b)))
         t_sim = bench_sim(b, ticks, a.repeats, a.device)
-        t_eval = bench_eval(b, ticks, a.repeats, a.device)
-        steps = 50 if b >= 1024 else 200
-        t_env = bench_env(b, steps, max(1, a.repeats // 2), a.device)
-        rows.append({"B": b, "ticks": ticks, "sim_ticks_per_s": ticks / t_sim,
-                     "sim_site_ticks_per_s": b * ticks / t_sim,
-                     "eval_site_ticks_per_s": b * ticks / t_eval,
-                     "env_steps_per_s": steps / t_env,
-                     "env_site_steps_per_s": b * steps / t_env})
-        r = rows[-1]
+        t_eval = bench_eval(b, ticks, a.repeats, a.device, use_fused=False)
+        steps = a.env_steps or (50 if b >= 1024 else 200)
+        env_repeats = max(1, a.repeats // 2)
+        t_env = bench_env(b, steps, env_repeats, a.device, use_fused=False)
+        r = {"B": b, "ticks": ticks, "sim_ticks_per_s": ticks / t_sim,
+             "sim_site_ticks_per_s": b * ticks / t_sim,
+             "eval_site_ticks_per_s": b * ticks / t_eval,
+             "env_steps_per_s": steps / t_env,
+             "env_site_steps_per_s": b * steps / t_env}
+        if has_fused:
+            t_eval_f = bench_eval(b, ticks, a.repeats, a.device, use_fused=True)
+            t_env_f = bench_env(b, steps, env_repeats, a.device, use_fused=True)
+            r.update(eval_fused_site_ticks_per_s=b * ticks / t_eval_f,
+                     env_fused_steps_per_s=steps / t_env_f,
+                     env_fused_site_steps_per_s=b * steps / t_env_f)
+        rows.append(r)
+        fast = (f" (fused {r['eval_fused_site_ticks_per_s'] / 1e6:6.2f})" if has_fused else "",
+                f" (fused {r['env_fused_site_steps_per_s']:9.0f})" if has_fused else "")
         print(f"B={b:5d}  sim {r['sim_ticks_per_s']:9.0f} ticks/s "
               f"{r['sim_site_ticks_per_s'] / 1e6:7.2f} M site-ticks/s | eval "
-              f"{r['eval_site_ticks_per_s'] / 1e6:6.2f} M site-ticks/s | env "
-              f"{r['env_site_steps_per_s']:9.0f} site-steps/s", flush=True)
+              f"{r['eval_site_ticks_per_s'] / 1e6:6.2f}{fast[0]} M site-ticks/s | env "
+              f"{r['env_site_steps_per_s']:9.0f}{fast[1]} decisions/s", flush=True)
     result = {"machine": {"platform": platform.platform(), "cpus": torch.get_num_threads(),
                           "device": a.device}, "packages": package_versions(), "rows": rows}
-    if not a.skip_protocol:
-        t = median_time(lambda: simulate(RulePolicy(), SiteConfig(), 1000, 10_000, 0, a.device),
-                         max(1, a.repeats // 2 + 1))
+    if not a.skip_protocol and fused.available():  # the protocol on the CPU
+        t = bench_protocol(max(1, a.repeats // 2 + 1))
         result["protocol_1000x10000_s"] = t
-        print(f"thesis protocol (rule, 1000 sims x 10 000 ticks): {t:.2f} s "
-              f"({1e7 / t / 1e6:.2f} M site-ticks/s)")
+        ref = t["reference"]
+        print(f"thesis protocol (rule, 1000 sims x 10 000 ticks, CPU): numpy reference "
+              f"{ref:.2f} s | eager {t['eager']:.2f} s ({t['eager'] / ref:.3f} x reference) "
+              f"| fused {t['fused']:.3f} s ({t['fused'] / ref:.3f} x reference, "
+              f"{t['eager'] / t['fused']:.1f}x faster than eager) | compile once "
+              f"{t['compile']:.2f} s")
     print("\n| B | sim ticks/s | sim M site-ticks/s | eval M site-ticks/s (rule in loop) "
-          "| env site-steps/s |\n|---:|---:|---:|---:|---:|")
+          "eager / fused | env decisions/s eager / fused |\n|---:|---:|---:|---:|---:|")
     for r in rows:
+        ev_f = f"{r['eval_fused_site_ticks_per_s'] / 1e6:.2f}" if has_fused else "-"
+        env_f = f"{r['env_fused_site_steps_per_s']:.0f}" if has_fused else "-"
         print(f"| {r['B']} | {r['sim_ticks_per_s']:.0f} | {r['sim_site_ticks_per_s'] / 1e6:.2f} | "
-              f"{r['eval_site_ticks_per_s'] / 1e6:.2f} | {r['env_site_steps_per_s']:.0f} |")
+              f"{r['eval_site_ticks_per_s'] / 1e6:.2f} / {ev_f} | "
+              f"{r['env_site_steps_per_s']:.0f} / {env_f} |")
+    if "protocol_1000x10000_s" in result:
+        t = result["protocol_1000x10000_s"]
+        print("\n| thesis protocol (CPU) | wall s | x numpy reference |\n|---|---:|---:|")
+        for k in ("reference", "eager", "fused"):
+            print(f"| {k} | {t[k]:.3f} | {t[k] / t['reference']:.3f} |")
+        print(f"| fused: compile once | {t['compile']:.2f} | |")
     if a.out:
         write_json(a.out, result)
     return result

@@ -66,6 +66,7 @@ def test_site_variants():
     ("objective.seed=-1", "objective.seed"),
     ("eval.n_sims=0", "eval.n_sims"),
     ("table.seeds=0", "table.seeds"),
+    ("eval.backend=gpu", "eval.backend"),
     ("table.jobs=0", "table.jobs"),
     ("eval.device=gpu0", "eval.device"),
 ])

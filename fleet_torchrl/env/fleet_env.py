@@ -29,6 +29,12 @@ After a reset a site runs until its first decision; in the rare case that it fai
 any vehicle reaches ``D`` (only possible with a tiny ``xi``), it is redrawn with its next
 episode index.
 
+Backends (``fused``, same observations, rewards and flags bit for bit): on CPU a step is by
+default ONE call of the compiled kernel of :mod:`fleet_torchrl.sim.fused`, which runs every
+site to its next decision, failure or ``tau_e`` and accumulates the reward on the way
+(``fused=None``/``True``); ``fused=False``, and any device but the CPU, run the eager loop
+of :meth:`Site.tick` calls, one per tick with a host sync per tick.
+
 The episode counters are the environment's ``state_dict`` (a buffer ``episodes``): with the
 seed, they are all a checkpoint needs to continue the stream of training sites exactly.
 
@@ -44,10 +50,12 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from ..sim import Site, SiteConfig, TickOutcome, rng
+from ..sim import fused as _fused
 from .config import MDPConfig
 from .encodings import get_encoding
 
 _MAX_REDRAWS = 100
+_NO_LIMIT = 1 << 62  # tick limit of the run to the first decision (none)
 
 
 def step_ticks(td: TensorDictBase) -> torch.Tensor:
@@ -64,14 +72,20 @@ def discount_exponent(td: TensorDictBase, mdp: MDPConfig) -> torch.Tensor:
 
 
 class FleetChargingEnv(EnvBase):
-    """Batched charging-site MDP (``batch_size=[num_sites]``)."""
+    """Batched charging-site MDP (``batch_size=[num_sites]``).
+
+    ``fused``: ``None`` (default) steps with the compiled kernel on CPU when gcc can build it,
+    ``True`` forces it on CPU, ``False`` uses the eager tick loop; other devices always use
+    the eager loop (:func:`fleet_torchrl.sim.fused.use_fused`).
+    """
 
     _batch_locked = True
 
     def __init__(self, site: SiteConfig | None = None, encoding: str = "partial",
                  num_sites: int = 1, mdp: MDPConfig | None = None, seed: int = 0,
-                 device: str | torch.device = "cpu") -> None:
+                 device: str | torch.device = "cpu", fused: bool | None = None) -> None:
         super().__init__(device=device, batch_size=torch.Size([num_sites]))
+        self.fused = _fused.use_fused(self.device, fused)
         self.site_cfg = site or SiteConfig()
         self.mdp = mdp or MDPConfig()
         self.site = Site(self.site_cfg, self.device)
@@ -122,6 +136,8 @@ class FleetChargingEnv(EnvBase):
         s = self.state
         self.site.decide(s, torch.ones(b, dtype=torch.bool, device=self.device),
                          tensordict.get("action").reshape(b))
+        if self.fused:
+            return self._step_fused()
         active = torch.ones(b, dtype=torch.bool, device=self.device)
         cost = torch.zeros(b, dtype=torch.float32, device=self.device)
         n_ticks = torch.zeros(b, dtype=torch.int64, device=self.device)
@@ -148,6 +164,23 @@ class FleetChargingEnv(EnvBase):
                 break
         td = self._observe()
         td.set("reward", (cost / n_ticks if thesis else cost).unsqueeze(-1))
+        td.set("terminated", terminated.unsqueeze(-1))
+        td.set("truncated", truncated.unsqueeze(-1))
+        td.set("done", (terminated | truncated).unsqueeze(-1))
+        return td
+
+    def _step_fused(self) -> TensorDictBase:
+        """:meth:`_step` after the decision, as one kernel call (same float32 arithmetic)."""
+        s, m = self.state, self.mdp
+        out = _fused.advance(self.site, s, self._hash, m.tau_e, None, p_f=m.p_f, p_q=m.p_q,
+                             rho=m.rho, gamma_tick=m.gamma_tick)
+        self._trips += out.trips
+        self._queue += out.queue
+        terminated = out.failed
+        truncated = (s.tick >= m.tau_e) & ~terminated
+        reward = out.cost / out.ticks if m.reward == "thesis" else out.discounted
+        td = self._observe()
+        td.set("reward", reward.unsqueeze(-1))
         td.set("terminated", terminated.unsqueeze(-1))
         td.set("truncated", truncated.unsqueeze(-1))
         td.set("done", (terminated | truncated).unsqueeze(-1))
@@ -186,6 +219,13 @@ class FleetChargingEnv(EnvBase):
             self._queue.masked_fill_(todo, 0)
             running = todo & ~needs
             failed = torch.zeros_like(todo)
+            if self.fused:  # one kernel call: every site to its first decision or failure
+                if bool(running.any()):
+                    out = _fused.advance(self.site, self.state, self._hash, _NO_LIMIT, running)
+                    self._trips += out.trips
+                    self._queue += out.queue
+                    failed = out.failed
+                running = torch.zeros_like(todo)
             while bool(running.any()):
                 out = self._advance(running)
                 failed |= out.failed

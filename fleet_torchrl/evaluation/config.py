@@ -4,7 +4,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ..utils.checks import check_device, check_range
+from ..utils.checks import check_choice, check_device, check_range
+
+BACKENDS = ("auto", "eager", "fused")
+
+
+def fused_switch(backend: str) -> bool | None:
+    """The ``fused`` argument of :func:`~fleet_torchrl.evaluation.protocol.simulate` for an
+    ``eval.backend`` value."""
+    return {"auto": None, "eager": False, "fused": True}[backend]
 
 
 @dataclass
@@ -18,6 +26,9 @@ class EvalConfig:
     device: str = "cpu"
     chunk: int = 256  # ticks of closure draws generated at once
     progress: bool = True
+    # auto: the compiled event loop on CPU (sim/fused.py), else eager; eager: one tensor tick
+    # at a time; fused: the compiled loop on CPU (other devices run eager). Same records.
+    backend: str = "auto"
 
     def validate(self, path: str = "eval") -> EvalConfig:
         check_range(f"{path}.n_sims", self.n_sims, 1, 10**8)
@@ -25,4 +36,5 @@ class EvalConfig:
         check_range(f"{path}.seed", self.seed, 0, 2**32 - 1)
         check_range(f"{path}.chunk", self.chunk, 1, 1_000_000)
         check_device(f"{path}.device", self.device)
+        check_choice(f"{path}.backend", self.backend, BACKENDS)
         return self

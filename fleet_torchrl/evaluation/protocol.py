@@ -1,10 +1,18 @@
 """Evaluation protocol (MODEL §4): many sites, many ticks, common random numbers.
 
 :func:`simulate` runs a policy on ``n_sims`` sites for ``ticks`` ticks (or until each fails)
-straight on the simulator, without TorchRL in the loop: each tick is one :meth:`Site.tick`,
-one encoding and one policy forward over the whole batch, so there is no per-site Python
-work. Closure draws are generated ``chunk`` ticks at a time. Simulation ``i`` is site index
-``i`` under ``seed``: two policies evaluated with the same seed are paired.
+straight on the simulator, without TorchRL in the loop. Simulation ``i`` is site index ``i``
+under ``seed``: two policies evaluated with the same seed are paired. Two backends give the
+same records bit for bit (``tests/sim/test_fused.py``):
+
+* ``fused`` (the default on CPU): an event loop. One call of the compiled kernel of
+  :mod:`fleet_torchrl.sim.fused` runs every alive site to its next decision (a vehicle
+  reaching ``D``), its failure or the tick budget; then one encoding and one policy forward
+  over the batch decide for the sites at a decision. One Python iteration per decision epoch;
+  a failed site stops.
+* ``eager`` (any device; the only one off the CPU): each tick is one :meth:`Site.tick`, one
+  encoding and one policy forward over the whole batch. Closure draws are generated ``chunk``
+  ticks at a time; a failed site keeps being simulated but stops counting.
 
 Results are plain dicts (JSON-ready); :mod:`fleet_torchrl.evaluation.results` summarises,
 pairs and stores them.
@@ -22,17 +30,26 @@ from torch import Tensor
 from ..agents.base import Policy
 from ..env.encodings import get_encoding
 from ..sim import Site, SiteConfig
-from .config import EvalConfig
+from ..sim import fused as _fused
+from .config import EvalConfig, fused_switch
 from .results import summarize
 
 
 @torch.inference_mode()
 def simulate(policy: Policy, site_cfg: SiteConfig, n_sims: int = 1000, ticks: int = 10_000,
              seed: int = 0, device: str | torch.device = "cpu", chunk: int = 256,
-             progress: bool = False, desc: str | None = None) -> dict[str, Tensor]:
+             progress: bool = False, desc: str | None = None,
+             fused: bool | None = None) -> dict[str, Tensor]:
     """Per-simulation records (CPU tensors): ``trips``, ``queue``, ``failed``,
-    ``ticks_survived``."""
+    ``ticks_survived``.
+
+    ``fused``: ``None`` uses the compiled event loop on CPU (when gcc can build it), ``True``
+    forces it on CPU, ``False`` runs the eager tick loop; off the CPU the eager loop always
+    runs (see :func:`fleet_torchrl.sim.fused.use_fused`).
+    """
     device = torch.device(device)
+    if _fused.use_fused(device, fused):
+        return _simulate_fused(policy, site_cfg, n_sims, ticks, seed, progress, desc)
     site = Site(site_cfg, device)
     encode = get_encoding(policy.encoding)
     policy = policy.to(device).eval()
@@ -70,13 +87,59 @@ def simulate(policy: Policy, site_cfg: SiteConfig, n_sims: int = 1000, ticks: in
             "ticks_survived": survived.cpu()}
 
 
+def _simulate_fused(policy: Policy, site_cfg: SiteConfig, n_sims: int, ticks: int, seed: int,
+                    progress: bool, desc: str | None) -> dict[str, Tensor]:
+    """:func:`simulate` as an event loop over decision epochs (CPU, compiled kernel)."""
+    site = Site(site_cfg, "cpu")
+    encode = get_encoding(policy.encoding)
+    policy = policy.to("cpu").eval()
+    idx = torch.arange(n_sims, dtype=torch.int64)
+    s, needs = site.init_state(seed, idx)
+    site.decide(s, needs, policy(encode(site, s)))
+    site_hash = site.site_hash(seed, idx)
+    trips = torch.zeros(n_sims, dtype=torch.int64)
+    queue = torch.zeros_like(trips)
+    survived = torch.zeros_like(trips)
+    alive = torch.ones(n_sims, dtype=torch.bool)
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=ticks, desc=desc or f"eval {policy.name}", unit="tick",
+                   unit_scale=True, leave=False)
+    active = alive.clone()
+    shown = 0
+    while True:
+        out = _fused.advance(site, s, site_hash, ticks, active)
+        trips += out.trips
+        queue += out.queue
+        survived += out.ticks
+        alive &= ~out.failed
+        active = alive & (s.tick < ticks)
+        decide = out.arrived & active
+        if not bool(decide.any()):
+            if not bool(active.any()):
+                break
+        else:
+            site.decide(s, decide, policy(encode(site, s)))
+        if bar is not None:  # progress: the slowest alive site's tick
+            low = int(torch.where(active, s.tick, ticks).min())
+            bar.update(low - shown)
+            shown = low
+    if bar is not None:
+        bar.update(ticks - shown)
+        bar.close()
+    return {"trips": trips, "queue": queue, "failed": ~alive, "ticks_survived": survived}
+
+
 def evaluate_policy(policy: Policy, site_cfg: SiteConfig, n_sims: int, ticks: int, seed: int,
                     device: str = "cpu", chunk: int = 256, progress: bool = False,
-                    name: str | None = None) -> dict[str, Any]:
-    """Run the protocol and return a result dict (summary, per-simulation records, setup)."""
+                    name: str | None = None, fused: bool | None = None) -> dict[str, Any]:
+    """Run the protocol and return a result dict (summary, per-simulation records, setup).
+    ``fused``: the backend switch of :func:`simulate`."""
     t0 = time.perf_counter()
     rec = simulate(policy, site_cfg, n_sims, ticks, seed, device, chunk, progress,
-                   desc=f"eval {name or policy.name}")
+                   desc=f"eval {name or policy.name}", fused=fused)
     wall = time.perf_counter() - t0
     return {
         "policy": name or policy.name,
@@ -95,4 +158,5 @@ def evaluate_with(policy: Policy, site_cfg: SiteConfig, eval_cfg: EvalConfig,
     """:func:`evaluate_policy` with the protocol settings of an ``eval`` config."""
     e = eval_cfg
     return evaluate_policy(policy, site_cfg, e.n_sims, e.ticks, e.seed, e.device, e.chunk,
-                           progress=e.progress, name=name)
+                           progress=e.progress, name=name,
+                           fused=fused_switch(e.backend))

@@ -6,20 +6,26 @@ Measures, for batch sizes ``B`` in {1, 64, 1024, 8192} (median of ``--repeats`` 
 * ``eval``: the evaluation loop with the rule policy deciding in the loop, site-ticks/s;
 * ``env``: TorchRL environment steps (decision epochs) per second with the rule policy;
 
-and the wall time of the thesis protocol for one policy (1000 sims x 10 000 ticks).
+``eval`` and ``env`` both with the eager tick loop and with the fused kernel
+(:mod:`fleet_torchrl.sim.fused`); and the wall time of the thesis protocol for one policy
+(1000 sims x 10 000 ticks): eager, fused and the numpy reference
+(:func:`fleet_torchrl.sim.reference.simulate_reference`), with the kernel's one-off compile
+time apart.
 Results print as Markdown (paste into docs/BENCHMARKS.md) and, with ``--out``, as JSON.
 """
 
 from __future__ import annotations
 
+import os
 import statistics
+import tempfile
 import time
 
 import torch
 
 from ..agents import RulePolicy, as_td_module
 from ..evaluation import simulate
-from ..sim import Site, SiteConfig
+from ..sim import Site, SiteConfig, fused
 
 
 def median_time(fn, repeats: int) -> float:
@@ -46,14 +52,51 @@ def bench_sim(b: int, ticks: int, repeats: int, device: str) -> float:
     return median_time(run, repeats)
 
 
-def bench_eval(b: int, ticks: int, repeats: int, device: str) -> float:
-    return median_time(lambda: simulate(RulePolicy(), SiteConfig(), b, ticks, 0, device),
-                        repeats)
+def bench_eval(b: int, ticks: int, repeats: int, device: str,
+               use_fused: bool | None = False) -> float:
+    return median_time(lambda: simulate(RulePolicy(), SiteConfig(), b, ticks, 0, device,
+                                        fused=use_fused), repeats)
 
 
-def bench_env(b: int, steps: int, repeats: int, device: str) -> float:
+def bench_env(b: int, steps: int, repeats: int, device: str,
+              use_fused: bool | None = False) -> float:
     from ..env import FleetChargingEnv
 
-    env = FleetChargingEnv(num_sites=b, device=device)
+    env = FleetChargingEnv(num_sites=b, device=device, fused=use_fused)
     policy = as_td_module(RulePolicy())
     return median_time(lambda: env.rollout(steps, policy, break_when_any_done=False), repeats)
+
+
+def compile_time() -> float:
+    """Seconds to build the fused kernel from scratch (in a throw-away cache dir)."""
+    old = os.environ.get("FLEET_TORCHRL_CACHE")
+    with tempfile.TemporaryDirectory() as d:
+        os.environ["FLEET_TORCHRL_CACHE"] = d
+        fused._reset_for_tests()
+        try:
+            t0 = time.perf_counter()
+            fused.load()
+            return time.perf_counter() - t0
+        finally:
+            if old is None:
+                del os.environ["FLEET_TORCHRL_CACHE"]
+            else:
+                os.environ["FLEET_TORCHRL_CACHE"] = old
+            fused._reset_for_tests()
+
+
+def bench_protocol(repeats: int, n_sims: int = 1000, ticks: int = 10_000) -> dict[str, float]:
+    """Median wall times (s) of the thesis protocol with the rule policy on CPU: ``eager``,
+    ``fused`` (kernel already built) and ``reference`` (numpy), and ``compile`` (once)."""
+    from ..sim.reference import rule_policy, simulate_reference
+
+    cfg = SiteConfig()
+    out = {"compile": compile_time()}
+    fused.load()
+    out["fused"] = median_time(lambda: simulate(RulePolicy(), cfg, n_sims, ticks, 0, "cpu",
+                                                fused=True), repeats)
+    out["eager"] = median_time(lambda: simulate(RulePolicy(), cfg, n_sims, ticks, 0, "cpu",
+                                                fused=False), repeats)
+    out["reference"] = median_time(lambda: simulate_reference(rule_policy, cfg, n_sims, ticks, 0),
+                                   max(1, repeats // 2))
+    return out
