@@ -209,7 +209,8 @@ class Trainer:
         res = evaluate_policy(pol, name=self.name, **self.eval_args)
         gain = gain_over(res, self.rule_eval)["gain_pct"]
         p = self.progress
-        if p.is_better(res["failure_rate"], res["trips_mean"]):
+        improved = p.is_better(res["failure_rate"], res["trips_mean"])
+        if improved:
             p.best, p.best_round, p.evals_since_best = ((res["failure_rate"], res["trips_mean"]),
                                                         p.round, 0)
             self.best_policy.load_state_dict({k: v.detach().cpu()
@@ -225,11 +226,12 @@ class Trainer:
                               "eval/failure_rate": res["failure_rate"],
                               "eval/gain_over_rule_pct": gain, "eval/best_trips": p.best[1]},
                              step)
-        if pol.encoding == "partial":
+        if improved and pol.encoding == "partial" and self.monitor.enabled:
+            # the map of each new best policy (drawing one takes about a second)
             import matplotlib.pyplot as plt
 
             fig = plot_policy_map(pol, title=f"{self.name}, round {p.round}")
-            self.monitor.figure("policy_map", fig, step)
+            self.monitor.figure("policy_map/best", fig, step)
             plt.close(fig)
         return entry
 

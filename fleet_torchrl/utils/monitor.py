@@ -29,6 +29,10 @@ class Monitor:
 
             self.writer = SummaryWriter(log_dir=str(log_dir))
 
+    @property
+    def enabled(self) -> bool:
+        return self.writer is not None
+
     def scalars(self, values: dict[str, float], step: int) -> None:
         if self.writer is None:
             return

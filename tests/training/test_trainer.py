@@ -55,7 +55,7 @@ def test_tabular_training_learns_and_saves(tmp_path):
                 "loss/td", "eval/trips", "eval/queue", "eval/failure_rate",
                 "eval/gain_over_rule_pct", "time/fps", "time/wall_s"):
         assert tag in tags, tag
-    assert "policy_map" in ea.Tags()["images"]
+    assert "policy_map/best" in ea.Tags()["images"]
 
 
 @pytest.mark.slow
