@@ -50,17 +50,17 @@ class DQNAgentConfig(AgentConfig):
     """Deep Q-learning on TorchRL (MODEL §3); the network is the ``network`` group."""
 
     name: str = "dqn"
-    num_sites: int = 8  # sites simulated in parallel; a round resets them all
-    steps_per_round: int = 450  # decisions per site and round (one tau_e episode is ~350)
+    num_sites: int = 256  # sites simulated in parallel (one environment step = 256 decisions)
+    steps_per_round: int = 40  # decisions per site and round
     eps_start: float = 1.0
     eps_end: float = 0.05
-    eps_decay_frames: int = 250_000  # frames (decisions, all sites) to anneal epsilon
-    double_dqn: bool = False
+    eps_decay_frames: int = 400_000  # frames (decisions, all sites) to anneal epsilon
+    double_dqn: bool = True
     prioritized: bool = False  # prioritized replay (alpha 0.6, beta 0.4)
-    updates_per_round: int = 400  # gradient steps after each collected round
-    n_steps: int = 1  # n-step returns: decisions folded into one stored transition
-    reset_each_round: bool = True  # false: episodes run on across rounds
-    reward_scale: float = 1.0  # rewards are multiplied by this in the replay buffer
+    updates_per_round: int = 200  # gradient steps after each collected round
+    n_steps: int = 3  # n-step returns: decisions folded into one stored transition
+    reset_each_round: bool = False  # false: episodes run on across rounds
+    reward_scale: float = 10.0  # rewards are multiplied by this in the replay buffer
     policy: str | None = None  # saved policy for evaluation (default results/policies/dqn_<state>)
 
     def validate(self, cfg: Any = None, path: str = "agent") -> DQNAgentConfig:
@@ -84,13 +84,13 @@ class NetworkConfig:
     depth: int = 3  # hidden layers
     width: int = 32  # units per hidden layer
     lr: float = 1e-3  # Adam learning rate
-    weight_decay: float = 0.01  # Adam L2 regularisation
-    batch_size: int = 64
+    weight_decay: float = 1e-4  # Adam L2 regularisation
+    batch_size: int = 256
     buffer_size: int = 50_000
     target_update: int = 500  # gradient steps between hard target-network copies
     grad_clip: float = 0.0  # max gradient norm per step; 0 = no clipping
     tau: float = 0.0  # > 0: soft target update by tau per step instead of hard copies
-    lr_decay: str = "none"  # none | cosine | linear, over all gradient steps of the run
+    lr_decay: str = "cosine"  # none | cosine | linear, over all gradient steps of the run
     lr_final: float = 0.05  # final learning rate as a fraction of lr (lr_decay != none)
 
     def validate(self, path: str = "network") -> NetworkConfig:

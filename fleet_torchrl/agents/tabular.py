@@ -28,11 +28,11 @@ class TabularAgentConfig(AgentConfig):
     """Tabular Q-learning on the discretised ``partial`` state (MODEL §3)."""
 
     name: str = "tabular"
-    num_sites: int = 64  # sites simulated in parallel; one round = one episode per site
+    num_sites: int = 256  # sites simulated in parallel; one round = one episode per site
     k: float = 100.0  # learning rate k / (t + k), t = visits of the state-action pair
     eps_start: float = 1.0  # epsilon of the first episode
     eps_end: float = 0.3  # epsilon_min
-    eps_decay_episodes: int = 40  # episodes (per site) over which epsilon decays to eps_end
+    eps_decay_episodes: int = 20  # episodes (per site) over which epsilon decays to eps_end
     policy: str | None = None  # saved policy for evaluation (default results/policies/tabular)
 
     def validate(self, cfg: Any = None, path: str = "agent") -> TabularAgentConfig:

@@ -13,10 +13,10 @@ class TrainConfig:
 
     max_episodes: int = 10_000  # N_E: budget of rounds x num_sites (one episode per site/round)
     eval_every: int = 2  # rounds between evaluations of the greedy policy
-    eval_sims: int = 200  # evaluation sites (fixed common random numbers)
+    eval_sims: int = 500  # evaluation sites (fixed common random numbers)
     eval_ticks: int = 3000
     eval_seed: int = 1_000_003  # distinct from the final evaluation's seed
-    patience: int = 15  # evaluations without improvement before stopping (0 = never stop)
+    patience: int = 0  # evaluations without improvement before stopping (0 = never stop)
     checkpoint_every: int = 5  # rounds between checkpoints
     out_dir: str | None = None  # best policy goes here; default results/policies/<run name>
     device: str = "cpu"
