@@ -19,7 +19,7 @@ import platform
 
 import torch
 
-from .experiments.bench import bench_env, bench_eval, bench_protocol, bench_sim
+from .experiments.bench import bench_env, bench_eval, bench_protocol, bench_sim, bench_training
 from .sim import fused
 from .utils.runinfo import package_versions, write_json
 
@@ -34,6 +34,7 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--env-steps", type=int, default=None,
                    help="environment steps per measurement (default 200, 50 from B=1024)")
     p.add_argument("--skip-protocol", action="store_true")
+    p.add_argument("--skip-training", action="store_true")
     p.add_argument("--out", default=None, help="also write the figures as JSON")
     a = p.parse_args(argv)
 
@@ -89,6 +90,11 @@ def main(argv: list[str] | None = None) -> dict:
         for k in ("reference", "eager", "fused"):
             print(f"| {k} | {t[k]:.3f} | {t[k] / t['reference']:.3f} |")
         print(f"| fused: compile once | {t['compile']:.2f} | |")
+    if not a.skip_training:
+        result["training"] = tr = bench_training(device=a.device)
+        print("\n| learner (defaults) | sites | decisions/s | s per round |\n|---|---:|---:|---:|")
+        for name, r in tr.items():
+            print(f"| {name} | {r['sites']} | {r['decisions_per_s']:.0f} | {r['round_s']:.2f} |")
     if a.out:
         write_json(a.out, result)
     return result

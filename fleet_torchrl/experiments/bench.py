@@ -100,3 +100,29 @@ def bench_protocol(repeats: int, n_sims: int = 1000, ticks: int = 10_000) -> dic
     out["reference"] = median_time(lambda: simulate_reference(rule_policy, cfg, n_sims, ticks, 0),
                                    max(1, repeats // 2))
     return out
+
+
+LEARNERS = {"tabular": ["agent=tabular"], "dqn_partial": ["agent=dqn", "state=partial"],
+            "dqn_all": ["agent=dqn", "state=all"]}
+
+
+def bench_training(rounds: int = 4, device: str = "cpu") -> dict[str, dict[str, float]]:
+    """Training throughput of each learner with its default settings: decisions per second
+    over ``rounds`` rounds (collection, learning and the round's bookkeeping; evaluation,
+    checkpoints and TensorBoard left out), after one warm-up round."""
+    from ..config import compose_config
+    from ..training import Trainer
+
+    out = {}
+    with tempfile.TemporaryDirectory() as d:
+        for name, overrides in LEARNERS.items():
+            cfg = compose_config([*overrides, f"train.device={device}", "train.progress=false",
+                                  "train.tensorboard=false", f"train.out_dir={d}/{name}"])
+            trainer = Trainer(cfg, f"{d}/{name}_run")
+            trainer.play_round()  # warm-up (buffers fill, kernel loaded)
+            t0 = time.perf_counter()
+            frames = sum(trainer.play_round()["frames"] for _ in range(rounds))
+            dt = time.perf_counter() - t0
+            out[name] = {"decisions_per_s": frames / dt, "round_s": dt / rounds,
+                         "sites": cfg.agent.num_sites}
+    return out
