@@ -123,6 +123,9 @@ def make_policy(cfg: Config, device: str | torch.device | None = None) -> Policy
         return spec.make_policy(cfg.agent).to(device)
     path = Path(cfg.agent.policy) if cfg.agent.policy else default_policy_dir(cfg)
     policy = load_policy_file(path, device)
+    if not isinstance(policy, spec.policy_class):
+        raise ValueError(f"{path} holds a {type(policy).__name__}, not a policy of "
+                         f"agent={spec.name}: pass the matching agent= with agent.policy=")
     if policy.encoding != cfg.state.name:
         raise ValueError(f"{path} was trained on state={policy.encoding}, not "
                          f"state={cfg.state.name}")

@@ -70,6 +70,9 @@ def gain_over(result: dict[str, Any], baseline: dict[str, Any]) -> dict[str, Any
     a = torch.tensor(result["records"]["trips"], dtype=torch.float64)
     b = torch.tensor(baseline["records"]["trips"], dtype=torch.float64)
     base_mean = float(b.mean())
+    if base_mean <= 0:
+        raise ValueError(f"cannot express a gain over {baseline.get('policy')}: it completed no "
+                         "trips (mean 0), so a percentage of its trips is undefined")
     diff = a - b
     n = diff.numel()
     half = Z95 * _std(diff) / math.sqrt(n) if n > 1 else float("nan")

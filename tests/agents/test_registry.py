@@ -111,3 +111,17 @@ def test_a_new_learner_trains_saves_and_evaluates_through_the_registry(tmp_path,
     assert 0.3 <= float(saved.threshold) < 1.0  # a soc_D it saw, not the initial 1.0
     cfg = compose_config(["agent=threshold", f"agent.policy={tmp_path / 'pol'}"])
     assert isinstance(make_policy(cfg), ThresholdPolicy)
+
+
+def test_a_policy_file_of_another_agent_is_refused(tmp_path):
+    """agent=tabular with a DQN's policy file must not be evaluated and labelled tabular."""
+    from fleet_torchrl.agents import save_policy
+    from fleet_torchrl.agents.dqn import DQNPolicy, NetworkConfig
+
+    save_policy(tmp_path / "dqn" / "policy.pt", DQNPolicy(NetworkConfig(width=4, depth=1), 3,
+                                                          "partial"), "dqn")
+    cfg = compose_config(["agent=tabular", f"agent.policy={tmp_path / 'dqn'}"])
+    with pytest.raises(ValueError, match="holds a DQNPolicy, not a policy of agent=tabular"):
+        make_policy(cfg)
+    ok = compose_config(["agent=dqn", f"agent.policy={tmp_path / 'dqn'}"])
+    assert isinstance(make_policy(ok), DQNPolicy)

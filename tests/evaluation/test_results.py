@@ -69,3 +69,13 @@ def test_compare_cli(tmp_path):
     with pytest.raises(SystemExit) as e:
         main([str(tmp_path / "h.json"), str(tmp_path / "nope.json")])
     assert e.value.code == 2
+
+
+def test_gain_over_a_baseline_without_trips_is_a_clear_error():
+    from fleet_torchrl.evaluation import gain_over
+
+    base = {"policy": "stuck", "seed": 0, "n_sims": 2, "ticks": 10, "site": {},
+            "records": {"trips": [0, 0]}}
+    res = {**base, "policy": "rule", "records": {"trips": [3, 4]}}
+    with pytest.raises(ValueError, match="stuck.*completed no trips"):
+        gain_over(res, base)
