@@ -35,8 +35,10 @@ site to its next decision, failure or ``tau_e`` and accumulates the reward on th
 (``fused=None``/``True``); ``fused=False``, and any device but the CPU, run the eager loop
 of :meth:`Site.tick` calls, one per tick with a host sync per tick.
 
-The episode counters are the environment's ``state_dict`` (a buffer ``episodes``): with the
-seed, they are all a checkpoint needs to continue the stream of training sites exactly.
+The environment's ``state_dict`` holds everything that evolves: the episode counter of every
+slot (a buffer), the training seed, and the sites themselves (vehicles, decisions, tick
+counts, closure hashes, per-episode counters), so a checkpoint continues the stream of
+training sites exactly, also in the middle of episodes.
 
 Besides ``observation`` the environment reports per-episode counters ``trips``,
 ``queue_ticks`` and ``ticks`` (cumulative since the site's reset) for logging.
@@ -185,6 +187,33 @@ class FleetChargingEnv(EnvBase):
         td.set("truncated", truncated.unsqueeze(-1))
         td.set("done", (terminated | truncated).unsqueeze(-1))
         return td
+
+    # ------------------------------------------------------------------ checkpoints
+    _DYNAMIC = ("pos", "soc", "left", "charge", "tick")
+
+    def state_dict(self, *args, **kwargs):
+        sd = super().state_dict(*args, **kwargs)
+        for name in self._DYNAMIC:
+            sd[f"site.{name}"] = getattr(self.state, name).clone()
+        sd.update({"site.hash": self._hash.clone(), "site.trips": self._trips.clone(),
+                   "site.queue": self._queue.clone(),
+                   "seed": torch.tensor(self._seed, dtype=torch.int64)})
+        return sd
+
+    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
+        state_dict = dict(state_dict)
+        dev = self.device
+        for name in self._DYNAMIC:
+            setattr(self.state, name, state_dict.pop(f"site.{name}").to(dev).clone())
+        self._hash = state_dict.pop("site.hash").to(dev).clone()
+        self._trips = state_dict.pop("site.trips").to(dev).clone()
+        self._queue = state_dict.pop("site.queue").to(dev).clone()
+        self._seed = int(state_dict.pop("seed"))
+        return super().load_state_dict(state_dict, strict=strict, assign=assign)
+
+    def current(self) -> TensorDictBase:
+        """The observation and counters of the sites as they stand (no step, no reset)."""
+        return self._observe()
 
     # ------------------------------------------------------------------ internals
     def _advance(self, active: torch.Tensor) -> TickOutcome:

@@ -13,9 +13,10 @@ steps (``learner.act`` -> ``env`` -> ``learner.observe``), then ``learner.update
 
 Starting every round from fresh resets makes a round boundary a clean checkpoint: the
 environment's whole state there is its seed and episode counters. A learner with
-``reset_each_round = False`` lets episodes run on from one round into the next; a run of it
-that is resumed starts its next round from fresh resets (the episodes in flight at the
-checkpoint are dropped), so it continues close to, not exactly as, an uninterrupted run.
+``reset_each_round = False`` lets episodes run on from one round into the next; the
+checkpoint then also holds the sites in flight (the environment's ``state_dict``) and where
+the next round starts (:class:`LoopState`), so a resumed run still ends exactly where an
+uninterrupted one does.
 Steps truncated by the tick budget end between two decisions, so their next observation is
 no decision state; no learner learns from them.
 
@@ -37,7 +38,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 
 from ..agents.base import Policy
 from ..agents.baselines import RulePolicy
@@ -86,6 +87,32 @@ class EpisodeStats:
                 "train/trips": float(cat["trips"].mean()),
                 "train/queue_ticks": float(cat["queue"].mean()),
                 "train/failures": float(cat["failed"].mean())}
+
+
+class LoopState:
+    """Where the next round starts when episodes run across rounds: the root tensordict of
+    the next step and each site's running episode reward (a checkpoint component)."""
+
+    def __init__(self, trainer: Trainer) -> None:
+        self.trainer = trainer
+
+    def state_dict(self) -> dict[str, Any]:
+        t = self.trainer
+        if t._next is None:
+            return {"present": False}
+        return {"present": True, "reward": t._episode_reward.clone(),
+                "next": {k: v.clone() for k, v in
+                         t._next.flatten_keys(".").to_dict().items()}}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        t = self.trainer
+        if not state["present"]:
+            t._next, t._episode_reward = None, None
+            return
+        dev = t.device
+        t._episode_reward = state["reward"].to(dev)
+        t._next = TensorDict({k: v.to(dev) for k, v in state["next"].items()},
+                             batch_size=t.env.batch_size, device=dev).unflatten_keys(".")
 
 
 class Trainer:
@@ -138,7 +165,8 @@ class Trainer:
 
         self.checkpoint = Checkpoint(format="archive", learner=self.learner,
                                      best_policy=self.best_policy, env=self.env,
-                                     rng=GlobalRNGState(), progress=self.progress)
+                                     loop=LoopState(self), rng=GlobalRNGState(),
+                                     progress=self.progress)
         for name, component in self.learner.checkpoint_components().items():
             self.checkpoint.register(name, component)
         self.checkpoint_path = self.run_dir / CHECKPOINT
