@@ -106,8 +106,9 @@ def plot_learning_curves(curves: dict[str, dict[int, list[tuple[float, float]]]]
     ax.axhline(0.0, color="grey", lw=0.8, ls="--")
     ax.set_xlabel("training wall time (min)")
     ax.set_ylabel("eval gain over rule (%)")
-    lo = min((g for s in curves.values() for p in s.values() for _, g in p), default=-1.0)
-    ax.set_ylim(max(lo, -10.0) - 0.5, None)  # a failing snapshot would flatten the rest
+    gains = [g for s in curves.values() for p in s.values() for _, g in p]
+    lo, hi = (min(gains), max(gains)) if gains else (-1.0, 1.0)
+    ax.set_ylim(max(lo, -5.0) - 0.5, hi + 0.5)  # a failing snapshot would flatten the rest
     ax.set_title("learning curves (training-evaluation set, one line per seed)", fontsize=10)
     ax.legend(fontsize=7, loc="lower right")
     fig.tight_layout()
