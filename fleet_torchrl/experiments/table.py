@@ -96,8 +96,11 @@ def ensure_policy(name: str, seed: int, cfg: Config) -> tuple[Path, float | None
             print(f"[table] {run_dir} holds {why}: moved to {stale}, training afresh",
                   flush=True)
             resume = False
+    # progress bars of trainings that run side by side would interleave: one bar at most
+    progress = cfg.train.progress and cfg.table.jobs == 1
     cmd = [sys.executable, "-m", "fleet_torchrl.train", *overrides,
-           f"hydra.run.dir={run_dir}", f"resume={str(resume).lower()}"]
+           f"train.progress={str(progress).lower()}", f"hydra.run.dir={run_dir}",
+           f"resume={str(resume).lower()}"]
     print(f"[table] training {name} seed {seed}: {' '.join(cmd[2:])}", flush=True)
     t0 = time.perf_counter()
     subprocess.run(cmd, check=True)

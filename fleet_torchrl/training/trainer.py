@@ -184,7 +184,9 @@ class Trainer:
 
     def load_checkpoint(self) -> bool:
         if not self.checkpoint_path.exists():
-            return False
+            raise FileNotFoundError(f"resume=true, but there is no checkpoint at "
+                                    f"{self.checkpoint_path}: point hydra.run.dir at the run to "
+                                    "continue, or start a new run without resume=true")
         from torchrl.checkpoint import CheckpointError
 
         diff = checkpoint_mismatch(self.checkpoint_path, self.cfg)

@@ -137,3 +137,8 @@ def test_episodes_run_on_across_rounds_when_asked(tmp_path):
     same_episode = tr.env.episodes == episodes1  # no reset of the site in round 2
     assert same_episode.any()
     assert (ticks2[same_episode] > ticks1[same_episode]).all()  # its episode went on
+
+
+def test_resume_without_a_checkpoint_is_an_error(tmp_path):
+    with pytest.raises(FileNotFoundError, match="resume=true, but there is no checkpoint"):
+        _train([*TINY_TAB, "train.max_episodes=32"], tmp_path / "empty", resume=True)
