@@ -18,6 +18,7 @@ from omegaconf import DictConfig
 from .agents import make_policy
 from .config import Config, register_configs, to_config
 from .evaluation import evaluate_with, format_table, save_result
+from .evaluation.results import check_result_path
 from .utils.cli import user_errors
 from .utils.runinfo import run_info
 
@@ -25,6 +26,8 @@ register_configs()
 
 
 def run(cfg: Config, out: str | Path | None) -> dict:
+    if out is not None:
+        check_result_path(out)  # before the simulation, not after it
     policy = make_policy(cfg)
     e = cfg.eval
     result = evaluate_with(policy, cfg.site, e, name=cfg.agent.name)

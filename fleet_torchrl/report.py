@@ -27,8 +27,9 @@ def main(argv: list[str] | None = None) -> int:
     a = p.parse_args(argv)
     results = Path(a.results)
     with user_errors():
-        if not results.is_dir():
-            raise FileNotFoundError(f"no results folder {results}; run `make experiments` first")
+        if not (results / "table" / "table.md").is_file():
+            raise FileNotFoundError(f"no main comparison under {results} (table/table.md): run "
+                                    f"`make experiments` first; {a.out} is left unchanged")
     out = Path(a.out)
     write_text(out, build(results, out))
     print(f"[report] wrote {out}")

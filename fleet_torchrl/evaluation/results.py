@@ -7,6 +7,7 @@ evaluate_policy`: the summary, the per-simulation records and the setup.
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 from typing import Any
 
@@ -99,6 +100,24 @@ def record_rows(result: dict[str, Any]) -> list[dict[str, Any]]:
     return [{"sim": i, "trips": t, "queue": q, "failed": int(f), "ticks_survived": s}
             for i, (t, q, f, s) in enumerate(zip(rec["trips"], rec["queue"], rec["failed"],
                                                  rec["ticks_survived"], strict=True))]
+
+
+def check_result_path(path: str | Path) -> Path:
+    """Fail early, in one line, if a result cannot be written to ``path`` (and its ``.csv``):
+    wrong suffix, a directory in the way, or a folder that cannot be created or written."""
+    path = Path(path)
+    if path.suffix != ".json":
+        raise ValueError(f"result path must end in .json, got {path}")
+    for p in (path, path.with_suffix(".csv")):
+        if p.is_dir():
+            raise IsADirectoryError(f"cannot write the result {p}: it is a directory")
+    folder = path.parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
+        raise PermissionError(f"cannot write the result {path}: {folder} is not a writable "
+                              "folder")
+    return path
 
 
 def save_result(result: dict[str, Any], path: str | Path) -> tuple[Path, Path]:

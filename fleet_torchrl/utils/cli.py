@@ -8,7 +8,7 @@ from contextlib import contextmanager
 
 from .checks import ConfigError
 
-USER_ERRORS = (ConfigError, FileNotFoundError, ValueError)
+USER_ERRORS = (ConfigError, FileNotFoundError, ValueError, IsADirectoryError, PermissionError)
 
 
 @contextmanager

@@ -43,6 +43,11 @@ def test_report_from_fixture_results(tmp_path):
     assert "Not run yet: `make sweep-tc`" in text and "Not run yet: `make grid`" in text
     assert (tmp_path / "docs" / "figures" / "boxplot.png").exists()
     assert (tmp_path / "docs" / "figures" / "learning_curves.png").exists()
+    before = out.read_text()
+    (res / "table" / "table.md").unlink()  # no main comparison: refuse, keep the report
+    with pytest.raises(SystemExit) as e:
+        report.main(["--results", str(res), "--out", str(out)])
+    assert e.value.code == 2 and out.read_text() == before
     with pytest.raises(SystemExit) as e:
         report.main(["--results", str(tmp_path / "none"), "--out", str(out)])
     assert e.value.code == 2
