@@ -2,11 +2,7 @@
 
     python -m fleet_torchrl.grid multirun/grid/<date_time>     # or no argument: the latest
 
-Reads every job's ``train_summary.json`` and ``.hydra/overrides.yaml``, groups the jobs by
-their overrides without ``seed``, and ranks the configurations by the mean (over seeds) of
-their best evaluation trips, failure rate breaking ties the other way. Writes ``summary.md``,
-``summary.csv`` and ``summary.json`` into the sweep folder and copies them to
-``results/grid/``. Jobs that did not finish are listed as missing, not dropped silently.
+The command line only; what it computes is :mod:`fleet_torchrl.experiments.grid`.
 """
 
 from __future__ import annotations

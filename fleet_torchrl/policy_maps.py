@@ -1,9 +1,6 @@
 """Policy maps (MODEL §5 item 2): ``make policy-maps`` (= ``python -m fleet_torchrl.policy_maps``).
 
-For each policy of ``maps.policies`` (saved ones from ``table.policies_dir``), the action on a
-grid of ``soc_D`` (y) x lowest soc of the others (x), one panel per charger time ``TC``: free
-and busy for the rule, the heuristic and the tabular agent (which only sees TC > 0), and TC in
-{0, 0.2, ..., 1} for DQN. Writes ``results/policy_maps/<name>.png``.
+The command line only; what it computes is :mod:`fleet_torchrl.experiments.policy_maps`.
 """
 
 from __future__ import annotations

@@ -2,11 +2,7 @@
 
     python -m fleet_torchrl.report [--results results] [--out docs/report.md]
 
-Sections: how and where the results were made (machine, commit, wall time of each step from
-``results/timings.json``), the main comparison (``results/table``), policy maps
-(``results/policy_maps``), the three generalisation sweeps (``results/sweeps``) and the grid
-search (``results/grid``). Figures are copied next to the report (``docs/figures/``). A missing
-part is reported as not run, with the target that makes it; nothing is retrained.
+The command line only; what it computes is :mod:`fleet_torchrl.experiments.report`.
 """
 
 from __future__ import annotations

@@ -1,16 +1,9 @@
-"""Generalisation sweeps (MODEL §5 item 3): policies trained on the default site, evaluated
-on changed sites.
+"""Generalisation sweeps (MODEL §5 item 3): saved policies evaluated on changed sites.
 
     make sweep-pc      # = python -m fleet_torchrl.sweeps -m +experiment=sweep_pc
                        #   then python -m fleet_torchrl.sweeps_summary pc
 
-Each Hydra job evaluates every policy of ``sweep.policies`` at one point (``site.<param> =
-sweep.value``) with the evaluation protocol (``eval.n_sims`` x ``eval.ticks``, common random
-numbers: all policies of a point see the same sites) and writes
-``results/sweeps/<name>/<param>=<value>.json`` atomically. A point whose file exists is
-skipped, so rerunning a sweep only runs what is missing; a point that fails writes an
-``.error`` file beside it and does not stop the other points. The saved policies must exist
-(``make policies`` trains what is missing); a job never trains.
+The command line only; what it computes is :mod:`fleet_torchrl.experiments.sweeps`.
 """
 
 from __future__ import annotations

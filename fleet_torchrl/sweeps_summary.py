@@ -2,7 +2,7 @@
 
     python -m fleet_torchrl.sweeps_summary pc [--out results/sweeps]
 
-Lists failed points (``.error`` files) and, with ``--expect``, points that never ran.
+The command line only; what it computes is :mod:`fleet_torchrl.experiments.sweeps_summary`.
 """
 
 from __future__ import annotations

@@ -4,17 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from fleet_torchrl.agents import HeuristicPolicy, Policy, RulePolicy
-
-
-class Always(Policy):
-    def __init__(self, action):
-        super().__init__()
-        self.action = action
-        self.name = f"always{action}"
-
-    def forward(self, obs):
-        return torch.full(obs.shape[:-1], self.action, dtype=torch.int64)
+from fleet_torchrl.agents import HeuristicPolicy, RulePolicy
 
 
 def test_baseline_decisions():

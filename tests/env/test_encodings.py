@@ -5,19 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from fleet_torchrl.agents import Policy
 from fleet_torchrl.env.encodings import get_encoding
 from fleet_torchrl.sim import C, D, Site, SiteConfig, SiteState
-
-
-class Always(Policy):
-    def __init__(self, action):
-        super().__init__()
-        self.action = action
-        self.name = f"always{action}"
-
-    def forward(self, obs):
-        return torch.full(obs.shape[:-1], self.action, dtype=torch.int64)
 
 
 def test_encodings_on_a_hand_built_state():

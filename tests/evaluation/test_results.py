@@ -7,7 +7,7 @@ import csv
 import pytest
 import torch
 
-from fleet_torchrl.agents import HeuristicPolicy, Policy, RulePolicy
+from fleet_torchrl.agents import HeuristicPolicy, RulePolicy
 from fleet_torchrl.evaluation import (
     compare,
     evaluate_policy,
@@ -16,16 +16,6 @@ from fleet_torchrl.evaluation import (
     save_result,
 )
 from fleet_torchrl.sim import SiteConfig
-
-
-class Always(Policy):
-    def __init__(self, action):
-        super().__init__()
-        self.action = action
-        self.name = f"always{action}"
-
-    def forward(self, obs):
-        return torch.full(obs.shape[:-1], self.action, dtype=torch.int64)
 
 
 def test_result_files_and_pairwise_comparison(tmp_path):

@@ -7,20 +7,9 @@ import subprocess
 import sys
 
 import pytest
-import torch
 
-from fleet_torchrl.agents import HeuristicPolicy, Policy, RulePolicy
+from fleet_torchrl.agents import HeuristicPolicy, RulePolicy
 from fleet_torchrl.sim import SiteConfig
-
-
-class Always(Policy):
-    def __init__(self, action):
-        super().__init__()
-        self.action = action
-        self.name = f"always{action}"
-
-    def forward(self, obs):
-        return torch.full(obs.shape[:-1], self.action, dtype=torch.int64)
 
 
 def test_mdp_score_ranks_by_reward_and_counts_like_the_protocol(tmp_path):
