@@ -19,7 +19,14 @@ import platform
 
 import torch
 
-from .experiments.bench import bench_env, bench_eval, bench_protocol, bench_sim, bench_training
+from .experiments.bench import (
+    bench_env,
+    bench_env_reference,
+    bench_eval,
+    bench_protocol,
+    bench_sim,
+    bench_training,
+)
 from .sim import fused
 from .utils.runinfo import package_versions, write_json
 
@@ -47,11 +54,13 @@ def main(argv: list[str] | None = None) -> dict:
         steps = a.env_steps or (50 if b >= 1024 else 200)
         env_repeats = max(1, a.repeats // 2)
         t_env = bench_env(b, steps, env_repeats, a.device, use_fused=False)
+        t_env_ref = bench_env_reference(b, steps, env_repeats)
         r = {"B": b, "ticks": ticks, "sim_ticks_per_s": ticks / t_sim,
              "sim_site_ticks_per_s": b * ticks / t_sim,
              "eval_site_ticks_per_s": b * ticks / t_eval,
              "env_steps_per_s": steps / t_env,
-             "env_site_steps_per_s": b * steps / t_env}
+             "env_site_steps_per_s": b * steps / t_env,
+             "env_reference_site_steps_per_s": b * steps / t_env_ref}
         if has_fused:
             t_eval_f = bench_eval(b, ticks, a.repeats, a.device, use_fused=True)
             t_env_f = bench_env(b, steps, env_repeats, a.device, use_fused=True)
@@ -61,6 +70,8 @@ def main(argv: list[str] | None = None) -> dict:
         rows.append(r)
         fast = (f" (fused {r['eval_fused_site_ticks_per_s'] / 1e6:6.2f})" if has_fused else "",
                 f" (fused {r['env_fused_site_steps_per_s']:9.0f})" if has_fused else "")
+        print(f"B={b:5d}  numpy reference env {r['env_reference_site_steps_per_s']:9.0f} "
+              "decisions/s", flush=True)
         print(f"B={b:5d}  sim {r['sim_ticks_per_s']:9.0f} ticks/s "
               f"{r['sim_site_ticks_per_s'] / 1e6:7.2f} M site-ticks/s | eval "
               f"{r['eval_site_ticks_per_s'] / 1e6:6.2f}{fast[0]} M site-ticks/s | env "
@@ -77,13 +88,15 @@ def main(argv: list[str] | None = None) -> dict:
               f"{t['eager'] / t['fused']:.1f}x faster than eager) | compile once "
               f"{t['compile']:.2f} s")
     print("\n| B | sim ticks/s | sim M site-ticks/s | eval M site-ticks/s (rule in loop) "
-          "eager / fused | env decisions/s eager / fused |\n|---:|---:|---:|---:|---:|")
+          "eager / fused | env decisions/s numpy reference / eager / fused |\n"
+          "|---:|---:|---:|---:|---:|")
     for r in rows:
         ev_f = f"{r['eval_fused_site_ticks_per_s'] / 1e6:.2f}" if has_fused else "-"
         env_f = f"{r['env_fused_site_steps_per_s']:.0f}" if has_fused else "-"
         print(f"| {r['B']} | {r['sim_ticks_per_s']:.0f} | {r['sim_site_ticks_per_s'] / 1e6:.2f} | "
               f"{r['eval_site_ticks_per_s'] / 1e6:.2f} / {ev_f} | "
-              f"{r['env_site_steps_per_s']:.0f} / {env_f} |")
+              f"{r['env_reference_site_steps_per_s']:.0f} / {r['env_site_steps_per_s']:.0f} / "
+              f"{env_f} |")
     if "protocol_1000x10000_s" in result:
         t = result["protocol_1000x10000_s"]
         print("\n| thesis protocol (CPU) | wall s | x numpy reference |\n|---|---:|---:|")

@@ -67,6 +67,14 @@ def bench_env(b: int, steps: int, repeats: int, device: str,
     return median_time(lambda: env.rollout(steps, policy, break_when_any_done=False), repeats)
 
 
+def bench_env_reference(b: int, steps: int, repeats: int) -> float:
+    """The same decision epochs on the numpy reference (rule deciding, no TorchRL)."""
+    from ..sim.reference import env_steps_reference, rule_policy
+
+    return median_time(lambda: env_steps_reference(rule_policy, SiteConfig(), b, steps, 0),
+                       repeats)
+
+
 def compile_time() -> float:
     """Seconds to build the fused kernel from scratch (in a throw-away cache dir)."""
     old = os.environ.get("FLEET_TORCHRL_CACHE")

@@ -197,3 +197,73 @@ def simulate_reference(policy_fn: Callable[[np.ndarray], np.ndarray], cfg: SiteC
         if out["arrived"].any():
             ref.decide(state, out["arrived"], policy_fn(partial_obs(state, cfg.t_c)))
     return {"trips": trips, "queue": queue, "failed": ~alive, "ticks_survived": survived}
+
+
+def env_steps_reference(policy_fn: Callable[[np.ndarray], np.ndarray], cfg: SiteConfig,
+                        n_sites: int, steps: int, seed: int) -> dict[str, np.ndarray]:
+    """Decision epochs of the environment (MODEL §2.1) on the reference site, for benchmarks
+    and cross-checks: every site decides, then runs tick by tick until its next decision or
+    its failure while the sites that are done wait (frozen). Sites are drawn as evaluation
+    sites ``0 .. n_sites-1`` of ``seed`` and never reset. Returns ``ticks`` and ``trips``
+    per site and step, ``[steps, B]``.
+    """
+    site, ref = Site(cfg), ReferenceSite(cfg)
+    idx = torch.arange(n_sites, dtype=torch.int64)
+    s0, needs = site.init_state(seed, idx)
+    state = ReferenceState.from_torch(s0)
+    site_hash = site.site_hash(seed, idx).numpy().astype(np.uint64)
+
+    def closed_now() -> np.ndarray:  # X closed in each site's own current tick (MODEL §1.4)
+        return closure_draws(site_hash, state.tick, cfg.p_c)
+
+    alive = np.ones(n_sites, dtype=bool)
+    # a site without a vehicle on D first runs to its first decision (not counted)
+    pending = ~needs.numpy()
+    while pending.any():
+        out = _masked_tick(ref, state, closed_now(), pending)
+        alive &= ~out["failed"]
+        pending &= ~(out["arrived"] | out["failed"])
+    ticks = np.zeros((steps, n_sites), dtype=np.int64)
+    trips = np.zeros((steps, n_sites), dtype=np.int64)
+    for k in range(steps):
+        ref.decide(state, alive, policy_fn(partial_obs(state, cfg.t_c)))
+        active = alive.copy()
+        while active.any():
+            out = _masked_tick(ref, state, closed_now(), active)
+            ticks[k] += active
+            trips[k] += out["arrived"] & active
+            alive &= ~(out["failed"] & active)
+            active &= ~(out["arrived"] | out["failed"])
+    return {"ticks": ticks, "trips": trips}
+
+
+def _masked_tick(ref: ReferenceSite, state: ReferenceState, closed: np.ndarray,
+                 active: np.ndarray) -> dict[str, np.ndarray]:
+    """One tick of the ``active`` sites; the others keep their state exactly."""
+    before = state.copy()
+    out = ref.tick(state, closed)
+    for name in ("pos", "soc", "left", "charge", "tick"):
+        new, old = getattr(state, name), getattr(before, name)
+        setattr(state, name, np.where(active, new, old))
+    return {k: v & active for k, v in out.items()}
+
+
+_M32 = np.uint64(0xFFFFFFFF)
+
+
+def _mix32(x: np.ndarray) -> np.ndarray:
+    """The 32-bit finaliser of the common random numbers (MODEL §1.5), in numpy uint64."""
+    x = x ^ (x >> np.uint64(16))
+    x = (x * np.uint64(0x21F0AAAD)) & _M32
+    x = x ^ (x >> np.uint64(15))
+    x = (x * np.uint64(0x735A2D97)) & _M32
+    return x ^ (x >> np.uint64(15))
+
+
+def closure_draws(site_hash: np.ndarray, ticks: np.ndarray, p_c: float) -> np.ndarray:
+    """Whether ``X`` is closed for each site in its tick ``ticks``: the draw of MODEL §1.5,
+    ``mix(site_hash ^ mix(t ^ 0x9E3779B9)) < p_c * 2**32``, computed here in numpy."""
+    if p_c <= 0.0:
+        return np.zeros(np.shape(ticks), dtype=bool)
+    t = (np.asarray(ticks).astype(np.uint64) & _M32) ^ np.uint64(0x9E3779B9)
+    return _mix32(site_hash ^ _mix32(t)) < np.uint64(int(round(p_c * (1 << 32))))
