@@ -75,14 +75,16 @@ def reusable(out_dir: Path, run_cfg: Config) -> bool:
         return False
 
 
-def ensure_policy(name: str, seed: int, cfg: Config) -> tuple[Path, float | None]:
-    """The saved policy ``name`` of ``seed``, training it first if needed; (path, seconds)."""
+def plan_training(name: str, seed: int, cfg: Config) -> list[str] | None:
+    """The training command of ``name`` with ``seed``, or None when its saved policy can be
+    reused. Runs in the main thread (Hydra's compose is process-global, not thread-safe); a
+    stale or unreadable checkpoint in the run directory is set aside here."""
     overrides = run_overrides(name, seed, cfg)
     run_cfg = compose_config(overrides)
     out_dir = Path(run_cfg.train.out_dir)
     if not cfg.table.retrain and reusable(out_dir, run_cfg):
         print(f"[table] reusing {out_dir / POLICY_FILE}", flush=True)
-        return out_dir / POLICY_FILE, None
+        return None
     run_dir = Path(cfg.table.runs_dir) / f"train_{name}_seed{seed}"
     resume = (run_dir / CHECKPOINT).exists() and not cfg.table.retrain
     if resume:
@@ -98,21 +100,28 @@ def ensure_policy(name: str, seed: int, cfg: Config) -> tuple[Path, float | None
             resume = False
     # progress bars of trainings that run side by side would interleave: one bar at most
     progress = cfg.train.progress and cfg.table.jobs == 1
-    cmd = [sys.executable, "-m", "fleet_torchrl.train", *overrides,
-           f"train.progress={str(progress).lower()}", f"hydra.run.dir={run_dir}",
-           f"resume={str(resume).lower()}"]
-    print(f"[table] training {name} seed {seed}: {' '.join(cmd[2:])}", flush=True)
+    return [sys.executable, "-m", "fleet_torchrl.train", *overrides,
+            f"train.progress={str(progress).lower()}", f"hydra.run.dir={run_dir}",
+            f"resume={str(resume).lower()}"]
+
+
+def run_training(cmd: list[str]) -> float:
+    """Run one planned training in its own process; its wall time in seconds."""
+    print(f"[table] training: {' '.join(cmd[2:])}", flush=True)
     t0 = time.perf_counter()
     subprocess.run(cmd, check=True)
-    return out_dir / POLICY_FILE, time.perf_counter() - t0
+    return time.perf_counter() - t0
 
 
 def ensure_policies(cfg: Config) -> dict[tuple[str, int], float | None]:
     """Train what is missing (``table.jobs`` at once); seconds per (name, seed), None if reused."""
     todo = [(name, seed) for name in cfg.table.train for seed in training_seeds(cfg)]
+    plans = {job: plan_training(*job, cfg) for job in todo}
+    runs = [job for job in todo if plans[job] is not None]
     with ThreadPoolExecutor(max_workers=cfg.table.jobs) as pool:
-        times = list(pool.map(lambda job: ensure_policy(*job, cfg)[1], todo))
-    return dict(zip(todo, times, strict=True))
+        times = dict(zip(runs, pool.map(lambda job: run_training(plans[job]), runs),
+                         strict=True))
+    return {job: times.get(job) for job in todo}
 
 
 def objective_of(name: str, cfg: Config) -> str:
