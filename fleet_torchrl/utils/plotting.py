@@ -18,7 +18,6 @@ if TYPE_CHECKING:
     from ..agents.base import Policy
 
 TC_TABULAR = (0.0, 0.5)  # free / busy: the tabular state only sees TC > 0
-TC_DQN = (0.0, 0.2, 0.4, 0.6, 0.8, 1.0)
 _CMAP = ListedColormap(["#d9e6f2", "#d95f02"])  # pass, charge
 
 
