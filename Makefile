@@ -34,7 +34,7 @@ lint: $(STAMP)  ## ruff
 format: $(STAMP)  ## apply ruff's automatic lint fixes (import order, modern syntax)
 	$(PY) -m ruff check --fix fleet_torchrl tests
 
-table: $(STAMP)  ## main job: train the learned policies (if missing) and compare all five -> results/table
+table: $(STAMP)  ## main job: train the learned policies over 3 seeds (if missing), compare with rule and heuristic -> results/table
 	$(TIMED) table -- $(PY) -m fleet_torchrl.table $(ARGS)
 
 policies: $(STAMP)  ## train the learned policies that are missing (no evaluation)
@@ -75,7 +75,7 @@ objective: $(STAMP)  ## how the MDP reward ranks policies vs their trips -> resu
 evaluate: $(STAMP)  ## evaluate a policy (MODEL §4); overrides in ARGS
 	$(PY) -m fleet_torchrl.evaluate $(ARGS)
 
-bench: $(STAMP)  ## simulator and evaluation throughput (docs/BENCHMARKS.md)
+bench: $(STAMP)  ## simulator, evaluation, environment and training throughput (docs/BENCHMARKS.md)
 	$(PY) -m fleet_torchrl.bench $(ARGS)
 
 tensorboard: $(STAMP)  ## open TensorBoard on the training runs
