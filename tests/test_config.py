@@ -67,6 +67,10 @@ def test_site_variants():
     ("eval.n_sims=0", "eval.n_sims"),
     ("table.seeds=0", "table.seeds"),
     ("eval.backend=gpu", "eval.backend"),
+    ("agent=dqn network.lr_decay=step", "network.lr_decay"),
+    ("agent=dqn network.tau=1.5", "network.tau"),
+    ("agent=dqn agent.n_steps=0", "agent.n_steps"),
+    ("agent=dqn agent.reward_scale=0", "agent.reward_scale"),
     ("table.jobs=0", "table.jobs"),
     ("eval.device=gpu0", "eval.device"),
 ])
