@@ -9,7 +9,7 @@ PYTEST_ARGS ?=
 
 .PHONY: help install test test-fast lint format table train evaluate grid bench tensorboard clean \
         policies policy-maps sweep-pc sweep-tc sweep-nv sweeps experiments report objective
-TIMED  := $(PY) -m fleet_torchrl.timing
+TIMED  := $(PY) -m fleet_torchrl.utils.timing
 
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-14s %s\n", $$1, $$2}'

@@ -25,7 +25,7 @@ def main(argv: list[str] | None = None) -> int:
     with user_errors():
         if not (results / "table" / "table.md").is_file():
             raise FileNotFoundError(f"no main comparison under {results} (table/table.md): run "
-                                    f"`make experiments` first; {a.out} is left unchanged")
+                                    f"`make table` first; {a.out} is left unchanged")
     out = Path(a.out)
     write_text(out, build(results, out))
     print(f"[report] wrote {out}")

@@ -47,10 +47,12 @@ class AgentSpec:
         return self.make_learner is not None
 
     def run_name(self, cfg: Config) -> str:
-        """Name of the policy a run of this agent makes (``tabular``, ``dqn_partial``, ...)."""
-        if self.states is not None and len(self.states) == 1:
-            return self.name
-        return f"{self.name}_{cfg.state.name}"
+        """Name of the policy a run of this agent makes (``tabular``, ``dqn_partial``,
+        ``dqn_all_throughput``, ...)."""
+        name = self.name if self.states is not None and len(self.states) == 1 \
+            else f"{self.name}_{cfg.state.name}"
+        # the objective is part of the name, as in make table: tabular vs tabular_throughput
+        return name if cfg.mdp.reward == "thesis" else f"{name}_{cfg.mdp.reward}"
 
 
 AGENTS: dict[str, AgentSpec] = {}
@@ -121,7 +123,12 @@ def make_policy(cfg: Config, device: str | torch.device | None = None) -> Policy
     device = device if device is not None else cfg.eval.device
     if not spec.trainable:
         return spec.make_policy(cfg.agent).to(device)
-    path = Path(cfg.agent.policy) if cfg.agent.policy else default_policy_dir(cfg)
+    if cfg.agent.policy:
+        path = Path(cfg.agent.policy)
+    elif cfg.train.out_dir:
+        path = Path(cfg.train.out_dir)
+    else:  # make train's <name>/policy.pt, else the lowest seed make table trained
+        path = saved_policy_path(cfg.table.policies_dir, spec.run_name(cfg))
     policy = load_policy_file(path, device)
     if not isinstance(policy, spec.policy_class):
         raise ValueError(f"{path} holds a {type(policy).__name__}, not a policy of "

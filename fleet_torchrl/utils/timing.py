@@ -1,4 +1,4 @@
-"""Time one step of ``make experiments``: ``python -m fleet_torchrl.timing STEP -- CMD ...``.
+"""Time one step of ``make experiments``: ``python -m fleet_torchrl.utils.timing STEP -- CMD ...``.
 
 Runs CMD, then records its wall time, exit code and the machine in ``results/timings.json``
 (atomically; other steps' entries are kept) for the report. Exits with CMD's exit code.
@@ -20,7 +20,7 @@ TIMINGS = Path("results/timings.json")
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if len(argv) < 3 or argv[1] != "--":
-        print("usage: python -m fleet_torchrl.timing STEP -- CMD ...", file=sys.stderr)
+        print("usage: python -m fleet_torchrl.utils.timing STEP -- CMD ...", file=sys.stderr)
         return 2
     step, cmd = argv[0], argv[2:]
     t0 = time.perf_counter()

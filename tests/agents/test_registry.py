@@ -125,3 +125,26 @@ def test_a_policy_file_of_another_agent_is_refused(tmp_path):
         make_policy(cfg)
     ok = compose_config(["agent=dqn", f"agent.policy={tmp_path / 'dqn'}"])
     assert isinstance(make_policy(ok), DQNPolicy)
+
+
+def test_names_carry_the_objective_and_make_table_policies_are_found(tmp_path):
+    from fleet_torchrl.agents import save_policy
+    from fleet_torchrl.agents.tabular import TabularQPolicy
+
+    thr = compose_config(["agent=dqn", "mdp.reward=throughput"])
+    assert AGENTS["dqn"].run_name(thr) == "dqn_partial_throughput"
+    # make table saves per seed: evaluating agent=tabular finds the lowest seed's policy
+    save_policy(tmp_path / "tabular" / "seed1" / "policy.pt", TabularQPolicy(), "tabular")
+    cfg = compose_config(["agent=tabular", f"table.policies_dir={tmp_path}"])
+    assert isinstance(make_policy(cfg), TabularQPolicy)
+
+
+def test_the_makefile_timing_wrapper_exists():
+    import importlib
+    import re
+
+    from fleet_torchrl.config import CONF_DIR
+
+    makefile = (CONF_DIR.parents[1] / "Makefile").read_text()
+    module = re.search(r"^TIMED\s*:=\s*\$\(PY\) -m (\S+)", makefile, re.M).group(1)
+    assert callable(importlib.import_module(module).main)
