@@ -1,9 +1,10 @@
 """The training loop: one loop for every learner (MODEL §3), with explicit setup stages.
 
-Schedule. Training runs in *rounds*. Every round resets all ``agent.num_sites`` sites of the
-batched environment and plays ``train.max_episodes / num_sites`` rounds in all (the budget
-counts one episode per site and round). A round is ``learner.start_round``, then environment
-steps (``learner.act`` -> ``env`` -> ``learner.observe``), then ``learner.update``:
+Schedule. Training runs in ``train.max_episodes / agent.num_sites`` *rounds* over a batched
+environment of ``agent.num_sites`` sites (the budget counts one episode per site and round;
+a round starts from fresh resets unless the learner lets episodes run on, see below).
+A round is ``learner.start_round``, then environment steps (``learner.act`` -> ``env`` ->
+``learner.observe``), then ``learner.update``:
 
 * a learner with ``steps_per_round = None`` (tabular) plays exactly one episode per site:
   a site whose episode is done stops learning, and the round ends when all are done;
