@@ -6,8 +6,10 @@ of the tick is its own explicit mask, so that it can cross-check the torch simul
 faster variant of it) tick by tick. It shares only the interface with the torch version: the
 state layout (``[V, B]`` vehicle arrays, ``[B]`` site arrays) and float32 energy arithmetic
 performed in the same order (add the tick's delta, then cap at 100), so that states can be
-compared bit for bit. Initial states and closure draws are taken from the torch
-:class:`~fleet_torchrl.sim.site.Site` (common random numbers, MODEL §1.4).
+compared bit for bit. Initial states are taken from the torch
+:class:`~fleet_torchrl.sim.site.Site` (common random numbers, MODEL §1.4); so are the closure
+draws of :func:`simulate_reference`, while :func:`env_steps_reference` computes its own with
+:func:`closure_draws` (tested equal to the torch draws).
 
 Vectorised over sites; nothing here is meant to be fast.
 """
