@@ -73,6 +73,12 @@ def test_site_variants():
     ("agent=dqn agent.reward_scale=0", "agent.reward_scale"),
     ("table.jobs=0", "table.jobs"),
     ("eval.device=gpu0", "eval.device"),
+    ("train.select=queue", "train.select"),
+    ("agent=search agent.elite=64", "agent.elite"),
+    ("agent=search agent.policy_class=tree", "agent.policy_class"),
+    ("agent=search agent.init=random", "agent.init"),
+    ("agent=search agent.p_min=0.6", "agent.p_min"),
+    ("agent=search agent.smoothing=0", "agent.smoothing"),
 ])
 def test_bad_values_name_the_field(override, field):
     with pytest.raises(ConfigError) as e:

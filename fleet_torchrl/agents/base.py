@@ -14,6 +14,7 @@ replay buffer, exploration schedule) and is driven by the one training loop of
 
 from __future__ import annotations
 
+import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, ClassVar
@@ -37,6 +38,11 @@ class AgentConfig:
     def validate(self, cfg: Config, path: str = "agent") -> AgentConfig:
         """Range checks of this agent's fields (``cfg``: the whole config, for cross-checks)."""
         return self
+
+    def training_rounds(self, train: Any) -> int:
+        """Rounds of the training loop: ``train.max_episodes`` episodes, one per site and round
+        (a learner with another budget overrides this)."""
+        return math.ceil(train.max_episodes / self.num_sites)  # type: ignore[attr-defined]
 
 
 class Policy(nn.Module):
@@ -67,8 +73,10 @@ class Learner(nn.Module, ABC):
 
     ``steps_per_round``: environment steps per round, every site resetting itself when its
     episode ends (``None``: one episode per site, sites that are done stop learning and the
-    round ends when all are done). ``reset_each_round``: whether a round starts from fresh
-    resets (with ``steps_per_round`` set, ``False`` lets episodes run on across rounds).
+    round ends when all are done; ``0``: no environment step, the learner simulates what it
+    needs itself in ``update``, as the direct policy search does). ``reset_each_round``:
+    whether a round starts from fresh resets (with ``steps_per_round`` set, ``False`` lets
+    episodes run on across rounds).
     """
 
     steps_per_round: int | None = None

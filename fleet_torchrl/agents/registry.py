@@ -8,7 +8,6 @@ config); learners are entries with ``make_learner`` (their policies are loaded f
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,6 +19,7 @@ from .base import AgentConfig, Learner, Policy
 from .baselines import HeuristicAgentConfig, HeuristicPolicy, RuleAgentConfig, RulePolicy
 from .dqn import DQNAgentConfig, DQNLearner, DQNPolicy
 from .policy_files import POLICY_FILE, read_policy_file
+from .search import SearchAgentConfig, SearchLearner, SearchPolicy
 from .tabular import TabularAgentConfig, TabularLearner, TabularQPolicy
 
 if TYPE_CHECKING:
@@ -79,9 +79,15 @@ def _tabular_learner(cfg: Config, env: FleetChargingEnv) -> Learner:
 
 def _dqn_learner(cfg: Config, env: FleetChargingEnv) -> Learner:
     n_obs = env.observation_spec["observation"].shape[-1]
-    rounds = math.ceil(cfg.train.max_episodes / cfg.agent.num_sites)
+    rounds = cfg.agent.training_rounds(cfg.train)
     return DQNLearner(cfg.agent, cfg.network, n_obs, cfg.state.name, env.action_spec,
                       cfg.mdp, env.device, total_updates=rounds * cfg.agent.updates_per_round)
+
+
+def _search_learner(cfg: Config, env: FleetChargingEnv) -> Learner:
+    init = cfg.agent.init
+    start = None if init == "uniform" else AGENTS[init].make_policy(AGENTS[init].schema())
+    return SearchLearner(cfg.agent, cfg.site, cfg.seed, start).to(env.device)
 
 
 register(AgentSpec("rule", RuleAgentConfig, RulePolicy, make_policy=RulePolicy.from_config))
@@ -90,6 +96,8 @@ register(AgentSpec("heuristic", HeuristicAgentConfig, HeuristicPolicy,
 register(AgentSpec("tabular", TabularAgentConfig, TabularQPolicy, make_learner=_tabular_learner,
                    states=("partial",)))
 register(AgentSpec("dqn", DQNAgentConfig, DQNPolicy, make_learner=_dqn_learner))
+register(AgentSpec("search", SearchAgentConfig, SearchPolicy, make_learner=_search_learner,
+                   states=("partial",)))
 
 
 # ------------------------------------------------------------------------ lookups

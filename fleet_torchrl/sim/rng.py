@@ -24,6 +24,7 @@ STREAM_CLOSURE = 1
 STREAM_INIT_POS = 2
 STREAM_INIT_SOC = 3
 STREAM_TRAINING = 4  # derives the environment's seed: training never replays evaluation sites
+STREAM_SEARCH = 5  # the sites of each generation of the direct policy search
 
 
 def training_seed(seed: int) -> int:

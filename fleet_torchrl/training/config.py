@@ -4,7 +4,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ..utils.checks import check_device, check_range
+from ..utils.checks import check_choice, check_device, check_range
+
+SELECTIONS = ("trips", "objective")
 
 
 @dataclass
@@ -16,6 +18,7 @@ class TrainConfig:
     eval_sims: int = 500  # evaluation sites (fixed common random numbers)
     eval_ticks: int = 3000
     eval_seed: int = 1_000_003  # distinct from the final evaluation's seed
+    select: str = "trips"  # snapshot selection after failures: trips | objective
     patience: int = 0  # evaluations without improvement before stopping (0 = never stop)
     checkpoint_every: int = 5  # rounds between checkpoints
     out_dir: str | None = None  # best policy goes here; default results/policies/<run name>
@@ -30,6 +33,7 @@ class TrainConfig:
         check_range(f"{path}.eval_sims", self.eval_sims, 1, 10**7)
         check_range(f"{path}.eval_ticks", self.eval_ticks, 1, 10**8)
         check_range(f"{path}.eval_seed", self.eval_seed, 0, 2**32 - 1)
+        check_choice(f"{path}.select", self.select, SELECTIONS)
         check_range(f"{path}.patience", self.patience, 0, None)
         check_range(f"{path}.checkpoint_every", self.checkpoint_every, 1, None)
         check_range(f"{path}.threads", self.threads, 0, 1024)

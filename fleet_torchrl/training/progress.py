@@ -6,6 +6,16 @@ from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
 
+def selection_score(select: str, reward: str, res: dict[str, Any]) -> float:
+    """What ranks two evaluations with the same failure rate (``train.select``): the mean
+    trips (``trips``), or the score of the objective being learned (``objective``): the
+    thesis reward (``mdp.reward=thesis``) costs queue ticks, so fewer of them win; the
+    throughput reward counts trips, so more of them win."""
+    if select == "objective" and reward == "thesis":
+        return -float(res["queue_mean"])
+    return float(res["trips_mean"])
+
+
 @dataclass
 class EvalEntry:
     """One periodic evaluation of the greedy policy (on the training-evaluation set)."""
@@ -23,8 +33,9 @@ class EvalEntry:
 class Progress:
     """Counters, early-stopping state and the evaluation history of one run.
 
-    ``best`` is ``(failure rate, mean trips)`` of the best evaluation so far: a lower failure
-    rate wins, then more trips.
+    ``best`` is ``(failure rate, score)`` of the best evaluation so far: a lower failure
+    rate wins, then a higher score (the mean trips, or the objective's own score with
+    ``train.select=objective``, see :meth:`Trainer.selection_score`).
     """
 
     round: int = 0
@@ -37,10 +48,10 @@ class Progress:
     wall_s: float = 0.0
     history: list[EvalEntry] = field(default_factory=list)
 
-    def is_better(self, failure_rate: float, trips: float) -> bool:
+    def is_better(self, failure_rate: float, score: float) -> bool:
         if self.best is None:
             return True
-        return (-failure_rate, trips) > (-self.best[0], self.best[1])
+        return (-failure_rate, score) > (-self.best[0], self.best[1])
 
     def best_entry(self) -> EvalEntry | None:
         if self.best_round is None:

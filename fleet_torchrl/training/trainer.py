@@ -32,7 +32,6 @@ atomically every ``checkpoint_every`` rounds and at the end.
 from __future__ import annotations
 
 import copy
-import math
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -51,7 +50,7 @@ from ..utils.monitor import Monitor
 from ..utils.plotting import plot_policy_map
 from ..utils.runinfo import run_info, write_json
 from .checkpoint import CHECKPOINT, checkpoint_mismatch, training_fingerprint
-from .progress import EvalEntry, Progress
+from .progress import EvalEntry, Progress, selection_score
 
 if TYPE_CHECKING:
     from ..config import Config
@@ -130,7 +129,7 @@ class Trainer:
         self.name = self.spec.run_name(cfg)
         self.out_dir = default_policy_dir(cfg)
         self.device = torch.device(cfg.train.device)
-        self.n_rounds = math.ceil(cfg.train.max_episodes / cfg.agent.num_sites)
+        self.n_rounds = cfg.agent.training_rounds(cfg.train)
         self.progress = Progress()
         self._next: TensorDictBase | None = None
         self._episode_reward: torch.Tensor | None = None
@@ -207,6 +206,11 @@ class Trainer:
         env, learner = self.env, self.learner
         learner.start_round(self.progress.round)
         steps = learner.steps_per_round
+        if steps == 0:  # a learner that simulates its own sites (direct policy search)
+            out = {"episodes": 0, **learner.update()}
+            out["frames"] = int(out.get("frames", 0))
+            out["train/epsilon"] = learner.exploration()
+            return out
         fresh = steps is None or learner.reset_each_round or self._next is None
         td = env.reset() if fresh else self._next
         live = torch.ones(env.num_sites, dtype=torch.bool, device=self.device)
@@ -236,13 +240,14 @@ class Trainer:
 
     # ------------------------------------------------------------------ evaluation
     def evaluate(self, step: int) -> EvalEntry:
-        pol = self.policy()
+        pol, c = self.policy(), self.cfg
         res = evaluate_policy(pol, name=self.name, **self.eval_args)
         gain = gain_over(res, self.rule_eval)["gain_pct"]
         p = self.progress
-        improved = p.is_better(res["failure_rate"], res["trips_mean"])
+        score = selection_score(c.train.select, c.mdp.reward, res)
+        improved = p.is_better(res["failure_rate"], score)
         if improved:
-            p.best, p.best_round, p.evals_since_best = ((res["failure_rate"], res["trips_mean"]),
+            p.best, p.best_round, p.evals_since_best = ((res["failure_rate"], score),
                                                         p.round, 0)
             self.best_policy.load_state_dict({k: v.detach().cpu()
                                               for k, v in pol.state_dict().items()})
@@ -255,7 +260,8 @@ class Trainer:
         p.history.append(entry)
         self.monitor.scalars({"eval/trips": res["trips_mean"], "eval/queue": res["queue_mean"],
                               "eval/failure_rate": res["failure_rate"],
-                              "eval/gain_over_rule_pct": gain, "eval/best_trips": p.best[1]},
+                              "eval/gain_over_rule_pct": gain,
+                              "eval/best_trips": p.best_entry().trips},
                              step)
         if improved and pol.encoding == "partial" and self.monitor.enabled:
             # the map of each new best policy (drawing one takes about a second)
@@ -309,7 +315,7 @@ class Trainer:
                 if c.train.patience and p.evals_since_best >= c.train.patience:
                     p.stopped_early = True
             if p.best is not None:
-                postfix["best"] = f"{p.best[1]:.1f}"
+                postfix["best"] = f"{p.best_entry().trips:.1f}"
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(postfix)

@@ -142,3 +142,19 @@ def test_episodes_run_on_across_rounds_when_asked(tmp_path):
 def test_resume_without_a_checkpoint_is_an_error(tmp_path):
     with pytest.raises(FileNotFoundError, match="resume=true, but there is no checkpoint"):
         _train([*TINY_TAB, "train.max_episodes=32"], tmp_path / "empty", resume=True)
+
+
+def test_snapshot_selection_follows_train_select():
+    from fleet_torchrl.training.progress import Progress, selection_score
+
+    early = {"trips_mean": 350.0, "queue_mean": 40.0, "failure_rate": 0.0}
+    late = {"trips_mean": 349.0, "queue_mean": 8.0, "failure_rate": 0.0}
+    unsafe = {"trips_mean": 360.0, "queue_mean": 1.0, "failure_rate": 0.002}
+    for select, reward, winner in [("trips", "thesis", early), ("objective", "thesis", late),
+                                   ("objective", "throughput", early)]:
+        p = Progress()
+        for res in (unsafe, early, late):
+            score = selection_score(select, reward, res)
+            if p.is_better(res["failure_rate"], score):
+                p.best, kept = (res["failure_rate"], score), res
+        assert kept is winner, (select, reward)

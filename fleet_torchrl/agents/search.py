@@ -1,0 +1,309 @@
+"""Direct policy search (``agent=search``): the cross-entropy method on mean trips.
+
+What it optimises is the quantity the evaluation reports: the mean trips per simulation on
+common random numbers, with safety first (a candidate is ranked by its number of failed
+simulations, then by its mean trips, so a candidate with any failure never beats a safe one).
+It is this project's reference optimum of a policy class on a site: what the best member of
+the class achieves there, against which the learners' gains can be judged (MODEL §3.4).
+
+Policy classes (``agent.policy_class``), both on the ``partial`` encoding:
+
+* ``table``: one action per cell of the 200-cell discretisation of the tabular learner
+  (:func:`fleet_torchrl.agents.tabular.state_index`). The search distribution is one
+  Bernoulli probability of *charge* per cell, started from a named policy (``agent.init``,
+  ``p = 1 - p_min`` where it charges, ``p_min`` elsewhere; ``uniform``: 0.5 everywhere).
+* ``mlp``: a small network ``3 -> hidden (tanh) x depth -> 1`` that charges iff its output is
+  positive. The search distribution is a diagonal Gaussian over its weights, started at
+  ``N(0, sigma_init^2)``.
+
+One generation (one round of the training loop, :mod:`fleet_torchrl.training`):
+
+1. draw ``agent.population`` candidates from the distribution; candidate 0 is the
+   distribution's mode (the current greedy policy), so a generation always re-scores it;
+2. simulate all of them in **one batched simulation** of ``population x sites`` sites for
+   ``agent.ticks`` ticks (:func:`fleet_torchrl.sim.rollout.run_sites`): candidate ``k`` runs
+   the sites ``k * sites ... (k + 1) * sites - 1`` of the batch, which are the site indices
+   ``0 .. sites - 1`` of the generation's seed: every candidate sees the same initial states
+   and closures (common random numbers), and a fresh set each generation (a hash of the
+   training seed and the generation), apart from both evaluation sets;
+3. rank, keep the ``agent.elite`` best, move the distribution towards them by
+   ``agent.smoothing`` (the Bernoulli means / the Gaussian mean and standard deviation).
+
+The training loop evaluates the mode every ``train.eval_every`` generations on its selection
+set and keeps the best, as for every learner.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from torch import Tensor
+
+from ..env.encodings import get_encoding
+from ..sim import SiteConfig
+from ..sim import rng as _rng
+from ..sim.rollout import run_sites
+from ..utils.checks import check_choice, check_range
+from .base import AgentConfig, Learner, Policy
+from .tabular import N_STATES, state_index
+
+POLICY_CLASSES = ("table", "mlp")
+INITS = ("rule", "heuristic", "uniform")
+N_FEATURES = 3  # the partial encoding
+
+
+@dataclass
+class SearchAgentConfig(AgentConfig):
+    """Direct policy search by the cross-entropy method (see the module docstring)."""
+
+    name: str = "search"
+    policy_class: str = "table"  # table (200 cells) | mlp (a small network)
+    population: int = 64  # candidates per generation
+    elite: int = 8  # candidates the distribution moves towards
+    sites: int = 64  # sites per candidate and generation (the same sites for all)
+    ticks: int = 3000  # ticks per site and generation
+    generations: int = 60  # rounds of the training loop
+    smoothing: float = 0.5  # step towards the elite: new = (1 - s) old + s elite
+    init: str = "rule"  # table: starting policy, rule | heuristic | uniform
+    p_min: float = 0.05  # table: charge probabilities stay in [p_min, 1 - p_min]
+    hidden: int = 16  # mlp: units per hidden layer
+    depth: int = 2  # mlp: hidden layers
+    sigma_init: float = 1.0  # mlp: initial standard deviation of every weight
+    sigma_min: float = 0.02  # mlp: standard deviations stay at least this
+    num_sites: int = 1  # sites of the training loop's environment (the search runs its own)
+    policy: str | None = None  # saved policy for evaluation (default results/policies/search)
+
+    def validate(self, cfg: Any = None, path: str = "agent") -> SearchAgentConfig:
+        check_choice(f"{path}.policy_class", self.policy_class, POLICY_CLASSES)
+        check_range(f"{path}.population", self.population, 2, 100_000)
+        check_range(f"{path}.elite", self.elite, 1, self.population - 1,
+                    allowed=f"[1, population - 1 = {self.population - 1}]")
+        check_range(f"{path}.sites", self.sites, 1, 1_000_000)
+        check_range(f"{path}.ticks", self.ticks, 1, 10**8)
+        check_range(f"{path}.generations", self.generations, 1, 1_000_000)
+        check_range(f"{path}.smoothing", self.smoothing, 1e-6, 1.0, allowed="(0, 1]")
+        check_choice(f"{path}.init", self.init, INITS)
+        check_range(f"{path}.p_min", self.p_min, 0.0, 0.5)
+        check_range(f"{path}.hidden", self.hidden, 1, 4096)
+        check_range(f"{path}.depth", self.depth, 0, 16)
+        check_range(f"{path}.sigma_init", self.sigma_init, 1e-6, 100.0)
+        check_range(f"{path}.sigma_min", self.sigma_min, 0.0, self.sigma_init,
+                    allowed=f"[0, sigma_init = {self.sigma_init}]")
+        check_range(f"{path}.num_sites", self.num_sites, 1, 1_000_000)
+        return self
+
+    def training_rounds(self, train: Any) -> int:
+        return self.generations
+
+
+# ------------------------------------------------------------------------ the policy class
+def mlp_sizes(hidden: int, depth: int) -> list[tuple[int, int]]:
+    """``(in, out)`` of each layer of the ``mlp`` class."""
+    dims = [N_FEATURES, *([hidden] * depth), 1]
+    return list(zip(dims[:-1], dims[1:], strict=True))
+
+
+def mlp_n_params(sizes: list[tuple[int, int]]) -> int:
+    return sum(i * o + o for i, o in sizes)
+
+
+def mlp_logits(theta: Tensor, obs: Tensor, sizes: list[tuple[int, int]]) -> Tensor:
+    """Outputs ``[K, n]`` of ``K`` networks (flat weights ``theta [K, P]``) on their own
+    observations ``obs [K, n, F]``: one batched matrix product per layer."""
+    k = theta.shape[0]
+    x, at = obs, 0
+    for j, (i, o) in enumerate(sizes):
+        w = theta[:, at:at + i * o].view(k, i, o)
+        at += i * o
+        b = theta[:, at:at + o].view(k, 1, o)
+        at += o
+        x = torch.baddbmm(b, x, w)
+        if j < len(sizes) - 1:
+            x = torch.tanh(x)
+    return x.squeeze(-1)
+
+
+class SearchPolicy(Policy):
+    """A member of a search policy class: a 200-cell action table or a small network."""
+
+    name = "search"
+    encoding = "partial"
+
+    def __init__(self, policy_class: str = "table", hidden: int = 16, depth: int = 2) -> None:
+        super().__init__()
+        self.policy_class, self.hidden, self.depth = policy_class, hidden, depth
+        if policy_class == "table":
+            self.register_buffer("charge", torch.zeros(N_STATES, dtype=torch.int64))
+        elif policy_class == "mlp":
+            self.sizes = mlp_sizes(hidden, depth)
+            self.register_buffer("theta", torch.zeros(mlp_n_params(self.sizes)))
+        else:
+            raise ValueError(f"policy_class={policy_class!r} is invalid: allowed one of "
+                             f"{', '.join(POLICY_CLASSES)}")
+
+    def spec(self) -> dict[str, Any]:
+        return {"policy_class": self.policy_class, "hidden": self.hidden, "depth": self.depth}
+
+    def params(self) -> Tensor:
+        """The flat parameters the search distribution is over."""
+        return self.charge if self.policy_class == "table" else self.theta
+
+    def forward(self, obs: Tensor) -> Tensor:
+        if self.policy_class == "table":
+            return self.charge[state_index(obs)]
+        return (mlp_logits(self.theta[None], obs[None], self.sizes)[0] > 0).long()
+
+
+def population_actions(policy_class: str, params: Tensor, obs: Tensor,
+                       sizes: list[tuple[int, int]] | None = None) -> Tensor:
+    """Actions ``[K * n]`` of ``K`` candidates (``params [K, P]``) on a candidate-major batch
+    of observations ``[K * n, F]`` (candidate ``k`` owns rows ``k * n ... (k + 1) * n - 1``)."""
+    k = params.shape[0]
+    if policy_class == "table":
+        cell = state_index(obs).view(k, -1)
+        return params.gather(1, cell).reshape(-1).long()
+    assert sizes is not None
+    return (mlp_logits(params, obs.view(k, -1, obs.shape[-1]), sizes) > 0).reshape(-1).long()
+
+
+@torch.no_grad()
+def evaluate_population(policy_class: str, params: Tensor, site_cfg: SiteConfig, sites: int,
+                        ticks: int, seed: int, sizes: list[tuple[int, int]] | None = None,
+                        fused: bool | None = None) -> dict[str, Tensor]:
+    """Every candidate of ``params [K, P]`` on the same ``sites`` sites of ``seed`` in one
+    batched simulation. Returns ``[K, sites]`` records (``trips``, ``queue``, ``failed``,
+    ``ticks_survived``): row ``k`` is exactly what a separate simulation of candidate ``k``
+    on sites ``0 .. sites - 1`` gives."""
+    k = params.shape[0]
+    encode = get_encoding("partial")
+    params = params.cpu()
+    rec = run_sites(lambda site, s: population_actions(policy_class, params, encode(site, s),
+                                                       sizes),
+                    site_cfg, k * sites, ticks, seed, "cpu", fused=fused,
+                    site_index=torch.arange(sites, dtype=torch.int64).repeat(k))
+    return {key: v.view(k, sites) for key, v in rec.items()}
+
+
+def rank_key(failed: Tensor, trips: Tensor) -> Tensor:
+    """Score of each candidate (``[K, n]`` records): fewer failed sites first, then more
+    mean trips (any failure ranks below every safe candidate)."""
+    n_failed = failed.sum(1).to(torch.float64)
+    mean_trips = trips.to(torch.float64).mean(1)
+    return -n_failed * 1e9 + mean_trips
+
+
+def generation_seed(train_seed: int, generation: int) -> int:
+    """The simulation seed of a generation: apart from the evaluation seeds, a pure function
+    of (training seed, generation)."""
+    return int(_rng.hash_ints(_rng.training_seed(train_seed), generation, _rng.STREAM_SEARCH))
+
+
+class SearchLearner(Learner):
+    """The cross-entropy method over a :class:`SearchPolicy` class (module docstring).
+
+    It takes no environment steps (``steps_per_round = 0``): each round of the training loop
+    is one generation, simulated by :func:`evaluate_population`.
+    """
+
+    steps_per_round = 0
+    reset_each_round = False
+
+    def __init__(self, agent: SearchAgentConfig, site_cfg: SiteConfig, seed: int,
+                 init_policy: Policy | None = None) -> None:
+        super().__init__()
+        self.agent, self.site_cfg, self.seed = agent, site_cfg, seed
+        self.greedy = SearchPolicy(agent.policy_class, agent.hidden, agent.depth)
+        self.sizes = getattr(self.greedy, "sizes", None)
+        if agent.policy_class == "table":
+            if init_policy is None:
+                p = torch.full((N_STATES,), 0.5)
+            else:
+                p = init_policy(cell_centres()).float().clamp(agent.p_min, 1 - agent.p_min)
+            self.register_buffer("mean", p)
+            self.register_buffer("std", torch.zeros(0))
+        else:
+            n = self.greedy.theta.numel()
+            self.register_buffer("mean", torch.zeros(n))
+            self.register_buffer("std", torch.full((n,), agent.sigma_init))
+        self.register_buffer("generation", torch.zeros((), dtype=torch.int64))
+        self._sync_greedy()
+
+    def _sync_greedy(self) -> None:
+        if self.agent.policy_class == "table":
+            self.greedy.charge.copy_((self.mean > 0.5).long())
+        else:
+            self.greedy.theta.copy_(self.mean)
+
+    # ------------------------------------------------------------------ Learner
+    def policy(self) -> SearchPolicy:
+        return self.greedy
+
+    def exploration(self) -> float:
+        """The spread of the search distribution: mean Bernoulli variance ``p (1 - p)`` of the
+        table, mean standard deviation of the network's weights."""
+        if self.agent.policy_class == "table":
+            return float((self.mean * (1 - self.mean)).mean())
+        return float(self.std.mean())
+
+    def act(self, td: TensorDictBase) -> TensorDictBase:
+        return td.set("action", self.greedy(td["observation"]))
+
+    def observe(self, td: TensorDictBase, learn: Tensor) -> None:  # no environment steps
+        pass
+
+    def sample(self) -> Tensor:
+        """``population`` candidates ``[K, P]``; candidate 0 is the mode."""
+        a = self.agent
+        if a.policy_class == "table":
+            cand = (torch.rand(a.population, self.mean.numel()) < self.mean).long()
+            cand[0] = (self.mean > 0.5).long()
+        else:
+            cand = self.mean + self.std * torch.randn(a.population, self.mean.numel())
+            cand[0] = self.mean
+        return cand
+
+    @torch.no_grad()
+    def update(self) -> dict[str, float]:
+        """One generation: sample, simulate the population, move towards the elite."""
+        a = self.agent
+        cand = self.sample()
+        seed = generation_seed(self.seed, int(self.generation))
+        rec = evaluate_population(a.policy_class, cand, self.site_cfg, a.sites, a.ticks, seed,
+                                  self.sizes)
+        key = rank_key(rec["failed"], rec["trips"])
+        elite = cand[key.argsort(descending=True, stable=True)[:a.elite]].to(self.mean.dtype)
+        s = a.smoothing
+        if a.policy_class == "table":
+            self.mean.mul_(1 - s).add_(s * elite.mean(0)).clamp_(a.p_min, 1 - a.p_min)
+        else:
+            self.mean.mul_(1 - s).add_(s * elite.mean(0))
+            self.std.mul_(1 - s).add_(s * elite.std(0, unbiased=False)).clamp_(min=a.sigma_min)
+        self.generation += 1
+        self._sync_greedy()
+        trips = rec["trips"].to(torch.float64).mean(1)
+        safe = rec["failed"].sum(1) == 0
+        return {"train/mode_trips": float(trips[0]),
+                "train/best_trips": float(trips[key.argmax()]),
+                "train/safe_share": float(safe.float().mean()),
+                "train/mode_failures": float(rec["failed"][0].float().mean()),
+                "frames": int(rec["trips"].sum())}
+
+
+def cell_centres() -> Tensor:
+    """One ``partial`` observation at the centre of each of the 200 cells, in cell order
+    (so ``policy(cell_centres())`` is a policy's action table)."""
+    cells = torch.arange(N_STATES)
+    busy = cells % 2
+    soc_bins = cells // 2
+    soc_d, others = soc_bins // 10, soc_bins % 10
+    obs = torch.stack(((soc_d * 10 + 5) / 100.0, (others * 10 + 5) / 100.0,
+                       busy * 0.5), dim=1).float()
+    assert bool((state_index(obs) == cells).all())
+    return obs
+
+
+__all__ = ["POLICY_CLASSES", "SearchAgentConfig", "SearchLearner", "SearchPolicy",
+           "cell_centres", "evaluate_population", "generation_seed", "mlp_logits", "rank_key"]

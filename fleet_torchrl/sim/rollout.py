@@ -1,0 +1,124 @@
+"""Run a batch of sites for a number of ticks under a decision function (MODEL §4's loop).
+
+:func:`run_sites` is the simulation core of the evaluation protocol
+(:mod:`fleet_torchrl.evaluation.protocol`) and of the batched population evaluation of the
+direct policy search (:mod:`fleet_torchrl.agents.search`). It knows nothing of policies or
+encodings: ``decide(site, state)`` returns the action of every site (``[B]``, 1 = charge)
+and only the sites with an undecided vehicle at ``D`` take it.
+
+Simulation ``i`` is the site with index ``site_index[i]`` under ``seed`` (default ``i``): its
+initial state and closure draws are those of that index, whatever else is in the batch, so
+two runs with the same seed and index are paired. Two backends give the same records bit
+for bit (``tests/sim/test_fused.py``):
+
+* fused (CPU): one call of the compiled kernel of :mod:`fleet_torchrl.sim.fused` runs every
+  alive site to its next decision, its failure or the tick budget; then one ``decide`` over
+  the batch. One Python iteration per decision epoch; a failed site stops.
+* eager (any device): each tick is one :meth:`Site.tick` and one ``decide`` over the whole
+  batch. Closure draws are generated ``chunk`` ticks at a time; a failed site keeps being
+  simulated but stops counting.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+from torch import Tensor
+
+from . import fused as _fused
+from .config import SiteConfig
+from .site import Site, SiteState
+
+Decide = Callable[[Site, SiteState], Tensor]
+
+
+@torch.inference_mode()
+def run_sites(decide: Decide, site_cfg: SiteConfig, n_sims: int, ticks: int, seed: int,
+              device: str | torch.device = "cpu", chunk: int = 256,
+              fused: bool | None = None, site_index: Tensor | None = None,
+              progress: bool = False, desc: str = "simulate") -> dict[str, Tensor]:
+    """Per-simulation records (CPU tensors): ``trips``, ``queue``, ``failed``,
+    ``ticks_survived``. ``fused``: ``None`` uses the compiled event loop on CPU (when gcc
+    can build it), ``True`` forces it on CPU, ``False`` runs the eager tick loop; off the CPU
+    the eager loop always runs (:func:`fleet_torchrl.sim.fused.use_fused`)."""
+    device = torch.device(device)
+    if site_index is None:
+        site_index = torch.arange(n_sims, dtype=torch.int64)
+    elif site_index.shape != (n_sims,):
+        raise ValueError(f"site_index must have shape ({n_sims},), got {tuple(site_index.shape)}")
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=ticks, desc=desc, unit="tick", unit_scale=True, leave=False)
+    try:
+        if _fused.use_fused(device, fused):
+            return _run_fused(decide, Site(site_cfg, "cpu"), site_index.cpu(), ticks, seed, bar)
+        return _run_eager(decide, Site(site_cfg, device), site_index.to(device), ticks, seed,
+                          chunk, bar)
+    finally:
+        if bar is not None:
+            bar.close()
+
+
+def _run_eager(decide: Decide, site: Site, idx: Tensor, ticks: int, seed: int, chunk: int,
+               bar) -> dict[str, Tensor]:
+    n_sims = idx.shape[0]
+    s, needs = site.init_state(seed, idx)
+    site.decide(s, needs, decide(site, s))
+    trips = torch.zeros(n_sims, dtype=torch.int64, device=site.device)
+    queue = torch.zeros_like(trips)
+    alive = torch.ones(n_sims, dtype=torch.bool, device=site.device)
+    survived = torch.zeros_like(trips)
+    for t0 in range(0, ticks, chunk):
+        n_t = min(chunk, ticks - t0)
+        ticks_block = torch.arange(t0, t0 + n_t, device=site.device)
+        closed_block = site.closures(seed, idx, ticks_block[:, None])  # [T, B]
+        for t in range(n_t):
+            # A failed site keeps being simulated but stops counting: masking three
+            # counters is cheaper than freezing the whole state every tick.
+            out = site.tick(s, closed_block[t])
+            survived += alive
+            trips += out.arrived & alive
+            queue += out.queue & alive
+            alive &= ~out.failed
+            site.decide(s, out.arrived, decide(site, s))
+        if bar is not None:
+            bar.update(n_t)
+    return {"trips": trips.cpu(), "queue": queue.cpu(), "failed": (~alive).cpu(),
+            "ticks_survived": survived.cpu()}
+
+
+def _run_fused(decide: Decide, site: Site, idx: Tensor, ticks: int, seed: int,
+               bar) -> dict[str, Tensor]:
+    n_sims = idx.shape[0]
+    s, needs = site.init_state(seed, idx)
+    site.decide(s, needs, decide(site, s))
+    site_hash = site.site_hash(seed, idx)
+    trips = torch.zeros(n_sims, dtype=torch.int64)
+    queue = torch.zeros_like(trips)
+    survived = torch.zeros_like(trips)
+    alive = torch.ones(n_sims, dtype=torch.bool)
+    active = alive.clone()
+    shown = 0
+    while True:
+        out = _fused.advance(site, s, site_hash, ticks, active)
+        trips += out.trips
+        queue += out.queue
+        survived += out.ticks
+        alive &= ~out.failed
+        active = alive & (s.tick < ticks)
+        sel = out.arrived & active
+        if not bool(sel.any()):
+            if not bool(active.any()):
+                break
+        else:
+            site.decide(s, sel, decide(site, s))
+        if bar is not None:  # progress: the slowest alive site's tick
+            low = int(torch.where(active, s.tick, ticks).min())
+            bar.update(low - shown)
+            shown = low
+    if bar is not None:
+        bar.update(ticks - shown)
+    return {"trips": trips, "queue": queue, "failed": ~alive, "ticks_survived": survived}
