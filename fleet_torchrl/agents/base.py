@@ -39,6 +39,10 @@ class AgentConfig:
         """Range checks of this agent's fields (``cfg``: the whole config, for cross-checks)."""
         return self
 
+    def objective(self, mdp: Any) -> str:
+        """The objective this agent's policies are trained for (the table's column)."""
+        return mdp.reward
+
     def training_rounds(self, train: Any) -> int:
         """Rounds of the training loop: ``train.max_episodes`` episodes, one per site and round
         (a learner with another budget overrides this)."""

@@ -270,7 +270,9 @@ class DQNLearner(Learner):
         """Keep the step for the round's n-step folding and advance epsilon by its frames.
         Truncated steps are left out when folding (their next observation is no decision
         state, see :mod:`fleet_torchrl.training`)."""
-        self.egreedy.step(td.numel())
+        e = self.egreedy  # EGreedyModule.step(n) loops n times: one closed-form step instead
+        e.eps.data.copy_(torch.maximum(e.eps_end, e.eps - td.numel() * (e.eps_init - e.eps_end)
+                                       / e.annealing_num_steps))
         self._steps.append(td.select(*self.KEYS).clone())
 
     def update(self) -> dict[str, float]:

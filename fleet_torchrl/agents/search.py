@@ -65,10 +65,10 @@ class SearchAgentConfig(AgentConfig):
     elite: int = 8  # candidates the distribution moves towards
     sites: int = 64  # sites per candidate and generation (the same sites for all)
     ticks: int = 3000  # ticks per site and generation
-    generations: int = 60  # rounds of the training loop
+    generations: int = 100  # rounds of the training loop
     smoothing: float = 0.5  # step towards the elite: new = (1 - s) old + s elite
-    init: str = "rule"  # table: starting policy, rule | heuristic | uniform
-    p_min: float = 0.05  # table: charge probabilities stay in [p_min, 1 - p_min]
+    init: str = "heuristic"  # table: starting policy, rule | heuristic | uniform
+    p_min: float = 0.15  # table: charge probabilities stay in [p_min, 1 - p_min]
     hidden: int = 16  # mlp: units per hidden layer
     depth: int = 2  # mlp: hidden layers
     sigma_init: float = 1.0  # mlp: initial standard deviation of every weight
@@ -97,6 +97,9 @@ class SearchAgentConfig(AgentConfig):
 
     def training_rounds(self, train: Any) -> int:
         return self.generations
+
+    def objective(self, mdp: Any) -> str:
+        return "trips"  # the search maximises mean trips directly, whatever mdp.reward says
 
 
 # ------------------------------------------------------------------------ the policy class

@@ -31,7 +31,7 @@ class MDPConfig:
     p_f: float = 50.0  # cost of a failure tick (both objectives)
     p_q: float = 1.0  # cost of a queue tick (thesis)
     gamma: float = 0.9  # discount per decision (thesis)
-    gamma_tick: float = 0.99  # discount per tick (throughput): gamma_tick^dt per step
+    gamma_tick: float = 0.998  # discount per tick (throughput): gamma_tick^dt per step
     rho: float = 0.115  # reference trips per tick subtracted every tick (throughput)
 
     def validate(self, path: str = "mdp") -> MDPConfig:

@@ -24,7 +24,12 @@ class TableConfig:
     train: dict[str, list[str]] = field(default_factory=lambda: {
         "tabular": ["agent=tabular", "train.max_episodes=12800"],
         "dqn_partial": ["agent=dqn", "state=partial", "train.max_episodes=30720"],
-        "dqn_all": ["agent=dqn", "state=all", "train.max_episodes=25600"],
+        "dqn_all": ["agent=dqn", "state=all", "train.max_episodes=20480"],
+        "tabular_throughput": ["agent=tabular", "mdp.reward=throughput",
+                               "train.max_episodes=12800"],
+        "dqn_partial_throughput": ["agent=dqn", "state=partial", "mdp.reward=throughput",
+                                   "agent.reward_scale=1.0", "train.max_episodes=30720"],
+        "search": ["agent=search"],
     })
 
     def validate(self, path: str = "table") -> TableConfig:

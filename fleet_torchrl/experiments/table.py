@@ -125,7 +125,8 @@ def ensure_policies(cfg: Config) -> dict[tuple[str, int], float | None]:
 
 
 def objective_of(name: str, cfg: Config) -> str:
-    return compose_config(list(cfg.table.train[name])).mdp.reward
+    run_cfg = compose_config(list(cfg.table.train[name]))
+    return run_cfg.agent.objective(run_cfg.mdp)
 
 
 def baseline_row(name: str, res: dict[str, Any], rule: dict[str, Any],

@@ -63,7 +63,9 @@ def test_start_tables_are_the_named_policies():
     learner = SearchLearner(SearchAgentConfig(init="heuristic"), SiteConfig(), 0,
                             HeuristicPolicy())
     assert torch.equal(learner.policy()(obs), HeuristicPolicy()(obs))
-    assert learner.mean.min() == 0.05 and learner.mean.max() == 0.95
+    p = learner.agent.p_min
+    assert torch.allclose(learner.mean.min(), torch.tensor(p))
+    assert torch.allclose(learner.mean.max(), torch.tensor(1 - p))
     # the rule's table: charge in every cell with soc_D below 40, whatever else
     rule = SearchLearner(SearchAgentConfig(), SiteConfig(), 0, RulePolicy()).policy()
     table = rule.charge.view(10, 10, 2)
