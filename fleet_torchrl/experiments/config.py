@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from ..utils.checks import check_choice, check_range
+from ..utils.checks import ConfigError, check_choice, check_range
 
 
 @dataclass
@@ -47,10 +47,20 @@ class SweepConfig:
     value: float = 0.8  # the point evaluated by this job
     out: str = "results/sweeps"
     policies: list[str] = field(default_factory=lambda: [
-        "rule", "heuristic", "tabular", "dqn_partial", "dqn_all"])
+        "rule", "heuristic", "tabular", "dqn_partial", "dqn_all", "search"])
+    # the point's own optimum: a direct policy search (agent=search) on the point's site,
+    # cached under search_dir by its training settings; [] of overrides = the search defaults
+    search: bool = True
+    search_overrides: list[str] = field(default_factory=list)
+    search_dir: str = "results/search"
 
     def validate(self, known: tuple[str, ...], path: str = "sweep") -> SweepConfig:
         check_choice(f"{path}.param", self.param, SWEEP_PARAMS)
+        for i, o in enumerate(self.search_overrides):
+            if o.split("=", 1)[0].lstrip("+~").split(".")[0] not in ("agent", "train", "seed"):
+                raise ConfigError(f"{path}.search_overrides[{i}]={o!r} is invalid: allowed "
+                                  "overrides of agent.*, train.* or seed (the site is the "
+                                  "point's)")
         for i, name in enumerate(self.policies):
             check_choice(f"{path}.policies[{i}]", name, known)
         return self

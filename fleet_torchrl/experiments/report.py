@@ -43,7 +43,10 @@ def _sweep_pivot(rows: list[dict[str, Any]]) -> str:
                 cells.append("")
             else:
                 fail = f", fail {r['failure_rate']:.3f}" if r["failure_rate"] > 0 else ""
-                cells.append(f"{r['gain_pct']:+.2f} ± {r['gain_ci95']:.2f}{fail}")
+                share = r.get("share_of_optimum_pct")
+                share = (f" ({share:.0f} %)" if share is not None and p != "optimum"
+                         else "")
+                cells.append(f"{r['gain_pct']:+.2f} ± {r['gain_ci95']:.2f}{share}{fail}")
         lines.append(f"| {v} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
@@ -97,8 +100,10 @@ def build(results: Path, out: Path) -> str:
         parts += ["Not run yet: `make policy-maps`.", ""]
 
     parts += ["## Generalisation sweeps (MODEL §5 item 3)", "",
-              "Policies trained on the default site, evaluated on changed sites. Cells: trips "
-              "gain over the rule in % ± 95% CI (failure rate when not zero).", ""]
+              "Policies trained on the default site, evaluated on changed sites, beside "
+              "`optimum`: the direct policy search (MODEL §3.4) run on the point's own site. "
+              "Cells: trips gain over the rule in % ± 95% CI, in brackets the share of the "
+              "optimum's gain, and the failure rate when not zero.", ""]
     for name, label in SWEEPS:
         js = results / "sweeps" / f"{name}.json"
         parts += [f"### {label}", ""]

@@ -1,33 +1,98 @@
 """Generalisation sweeps (MODEL §5 item 3): policies trained on the default site, evaluated
-on changed sites.
+on changed sites, next to the best policy the point itself allows.
 
     make sweep-pc      # = python -m fleet_torchrl.sweeps -m +experiment=sweep_pc
                        #   then python -m fleet_torchrl.sweeps_summary pc
 
 Each Hydra job evaluates every policy of ``sweep.policies`` at one point (``site.<param> =
 sweep.value``) with the evaluation protocol (``eval.n_sims`` x ``eval.ticks``, common random
-numbers: all policies of a point see the same sites) and writes
-``results/sweeps/<name>/<param>=<value>.json`` atomically. A point whose file exists is
-skipped, so rerunning a sweep only runs what is missing; a point that fails writes an
-``.error`` file beside it and does not stop the other points. The saved policies must exist
-(``make policies`` trains what is missing); a job never trains.
+numbers: all policies of a point see the same sites). With ``sweep.search`` (default) it also
+runs the direct policy search (``agent=search``, MODEL §3.4) on the point's own site and
+evaluates what it found as the row ``optimum``; every row then reports its share of the
+optimum's gain over the rule. A search is cached under ``sweep.search_dir/<point>/<key>``,
+``key`` a hash of its training settings, and reused whenever they match.
+
+The point's file ``results/sweeps/<name>/<param>=<value>.json`` is written atomically and
+records a key of everything it depends on (the site, the evaluation settings, each policy's
+identity: a baseline's parameters, a saved policy's file hash, the search's settings). A
+rerun skips a point whose key matches and recomputes one whose settings or policies changed;
+a point that fails writes an ``.error`` file beside it and does not stop the other points.
+The saved policies must exist (``make policies`` trains what is missing); a job trains only
+its point's search.
 """
 
 from __future__ import annotations
 
-from dataclasses import replace
+import hashlib
+import json
+from dataclasses import asdict, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-from ..agents import load_policies
+from ..agents import AGENTS, load_policies, load_policy_file
+from ..agents.base import Policy
+from ..agents.registry import saved_policy_path
+from ..config import Config, compose_config
 from ..evaluation import evaluate_with, gain_over
-from ..utils.runinfo import run_info, write_json
-
-if TYPE_CHECKING:
-    from ..config import Config
+from ..sim import SiteConfig
+from ..training import Trainer, training_fingerprint
+from ..utils.runinfo import read_json, run_info, to_jsonable, write_json
+from .table import reusable
 
 POINT_FIELDS = ("param", "value", "policy", "trips_mean", "trips_std", "queue_mean",
-                "failure_rate", "gain_pct", "gain_ci95")
+                "failure_rate", "gain_pct", "gain_ci95", "share_of_optimum_pct")
+OPTIMUM = "optimum"  # the row of the point's own direct policy search
+
+
+def digest(obj: Any) -> str:
+    """A short stable hash of a JSON-ready object."""
+    text = json.dumps(to_jsonable(obj), sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def policy_identity(cfg: Config, name: str) -> str:
+    """What a policy of ``sweep.policies`` is: a baseline's parameters, or the hash of the
+    saved policy file the name stands for."""
+    spec = AGENTS.get(name)
+    if spec is not None and not spec.trainable:
+        return f"{name}:{digest(asdict(spec.schema()))}"
+    path = saved_policy_path(cfg.table.policies_dir, name)
+    if not path.is_file():
+        return f"{name}:missing"
+    return f"{name}:{hashlib.sha256(path.read_bytes()).hexdigest()[:16]}"
+
+
+def search_config(cfg: Config, site: SiteConfig) -> Config:
+    """The training config of the point's search (``sweep.search_overrides`` on the search
+    defaults, the point's site)."""
+    run_cfg = compose_config(["agent=search", "train.threads=1", *cfg.sweep.search_overrides,
+                              "train.progress=false", "train.tensorboard=false"])
+    run_cfg.site = site
+    return run_cfg
+
+
+def point_search(cfg: Config, site: SiteConfig, label: str) -> tuple[Policy, dict[str, Any]]:
+    """The point's search policy (trained, or reused when its settings match) and summary."""
+    run_cfg = search_config(cfg, site)
+    out = Path(cfg.sweep.search_dir) / label / digest(training_fingerprint(run_cfg))
+    run_cfg.train.out_dir = str(out)
+    if not reusable(out, run_cfg):
+        print(f"[sweep] {label}: searching the point's optimum -> {out}", flush=True)
+        Trainer(run_cfg, out / "run").run()
+    else:
+        print(f"[sweep] {label}: reusing the search in {out}", flush=True)
+    return load_policy_file(out), read_json(out / "train_summary.json")
+
+
+def point_key(cfg: Config, site: SiteConfig) -> str:
+    """Everything a point's result depends on, hashed (the sweep cache's key)."""
+    e = cfg.eval
+    parts: dict[str, Any] = {
+        "site": site, "eval": {"n_sims": e.n_sims, "ticks": e.ticks, "seed": e.seed},
+        "policies": [policy_identity(cfg, n) for n in cfg.sweep.policies]}
+    if cfg.sweep.search:
+        parts["search"] = training_fingerprint(search_config(cfg, site))
+    return digest(parts)
 
 
 def point_value(param: str, value: float) -> float | int:
@@ -42,15 +107,26 @@ def point_path(cfg: Config) -> Path:
 def run_point(cfg: Config) -> list[dict[str, Any]] | None:
     """Evaluate all policies at this job's point; returns the rows (None if already done)."""
     path = point_path(cfg)
-    if path.exists():
-        print(f"[sweep] {path} exists, skipping")
-        return None
     param = cfg.sweep.param
     value = point_value(param, cfg.sweep.value)
-    site = replace(cfg.site, **{param: value}, name=f"{param}={value}").validate()
+    label = f"{param}={value}"
+    site = replace(cfg.site, **{param: value}, name=label).validate()
+    key = point_key(cfg, site)
+    if path.exists():
+        try:
+            old = read_json(path).get("key")
+        except ValueError:
+            old = None
+        if old == key:
+            print(f"[sweep] {path} exists, skipping")
+            return None
+        print(f"[sweep] {path} was computed with other settings or policies: recomputing")
     e = cfg.eval
-    results = {name: evaluate_with(pol, site, e, name=name)
-               for name, pol in load_policies(cfg, cfg.sweep.policies).items()}
+    policies = load_policies(cfg, cfg.sweep.policies)
+    search_summary = None
+    if cfg.sweep.search:
+        policies[OPTIMUM], search_summary = point_search(cfg, site, label)
+    results = {name: evaluate_with(pol, site, e, name=name) for name, pol in policies.items()}
     rule = results.get("rule")
     rows = []
     for name, res in results.items():
@@ -59,11 +135,20 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
                      **{k: res[k] for k in ("trips_mean", "trips_std", "queue_mean",
                                             "failure_rate")},
                      "gain_pct": g["gain_pct"], "gain_ci95": g["gain_ci95"]})
-    write_json(path, {"rows": rows, "site": site, "meta": run_info(cfg, seed=e.seed)})
+    best = next((r["gain_pct"] for r in rows if r["policy"] == OPTIMUM), None)
+    for r in rows:  # share of the achievable gain: this policy's gain over the optimum's
+        ok = best is not None and r["gain_pct"] is not None and best > 0
+        r["share_of_optimum_pct"] = 100.0 * r["gain_pct"] / best if ok else None
+    write_json(path, {"rows": rows, "site": site, "key": key,
+                      "search": search_summary and {k: search_summary[k] for k in
+                                                    ("run_dir", "wall_s", "best")},
+                      "meta": run_info(cfg, seed=e.seed)})
     err = path.with_suffix(".error")
     if err.exists():
         err.unlink()
     for r in rows:
         gain = f", gain {r['gain_pct']:+.2f} %" if r["gain_pct"] is not None else ""
-        print(f"[sweep] {param}={value} {r['policy']}: {r['trips_mean']:.1f} trips{gain}")
+        share = (f", {r['share_of_optimum_pct']:.0f} % of the optimum's"
+                 if r["share_of_optimum_pct"] is not None else "")
+        print(f"[sweep] {label} {r['policy']}: {r['trips_mean']:.1f} trips{gain}{share}")
     return rows

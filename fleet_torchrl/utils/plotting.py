@@ -119,16 +119,25 @@ PARAM_LABELS = {"p_c": "closure probability p_c", "t_c": "charging ticks T_C",
 
 
 def plot_sweep(rows: list[dict], param: str, title: str):
-    """Gain in trips over the rule (± 95% CI) per policy against the swept parameter."""
+    """Gain in trips over the rule (± 95% CI) per policy against the swept parameter; a point
+    whose policy failed in some simulation is circled in red, the point's own optimum (the
+    ``optimum`` row) is drawn as a black dashed line."""
     fig, ax = plt.subplots(figsize=(5.6, 3.6))
     policies = list(dict.fromkeys(r["policy"] for r in rows))
+    failed_label = "fails in some simulations"
     for name in policies:
-        pts = sorted((r["value"], r["gain_pct"], r["gain_ci95"] or 0.0) for r in rows
-                     if r["policy"] == name and r["gain_pct"] is not None)
+        pts = sorted((r["value"], r["gain_pct"], r["gain_ci95"] or 0.0, r["failure_rate"])
+                     for r in rows if r["policy"] == name and r["gain_pct"] is not None)
         if not pts:
             continue
-        x, y, ci = zip(*pts, strict=True)
-        ax.errorbar(x, y, yerr=ci, marker="o", ms=3.5, capsize=2.5, lw=1.2, label=name)
+        x, y, ci, fail = zip(*pts, strict=True)
+        style = dict(color="black", ls="--", lw=1.4) if name == "optimum" else dict(lw=1.2)
+        ax.errorbar(x, y, yerr=ci, marker="o", ms=3.5, capsize=2.5, label=name, **style)
+        bad = [(xi, yi) for xi, yi, f in zip(x, y, fail, strict=True) if f > 0]
+        if bad:
+            ax.scatter(*zip(*bad, strict=True), s=70, facecolors="none", edgecolors="red",
+                       lw=1.3, zorder=5, label=failed_label)
+            failed_label = None
     ax.axhline(0.0, color="grey", lw=0.8, ls="--")
     ax.set_xlabel(PARAM_LABELS.get(param, param))
     ax.set_ylabel("trips gain over rule (%)")

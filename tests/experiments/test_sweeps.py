@@ -3,12 +3,17 @@
 from __future__ import annotations
 
 import csv
+import json
 import subprocess
 import sys
 
 import pytest
 
 from fleet_torchrl import sweeps_summary
+
+TINY_SEARCH = "sweep.search_overrides=[" + ",".join(f"'{o}'" for o in (
+    "agent.generations=2", "agent.population=4", "agent.elite=1", "agent.sites=4",
+    "agent.ticks=300", "train.eval_sims=8", "train.eval_ticks=300")) + "]"
 
 
 @pytest.mark.slow
@@ -18,7 +23,8 @@ def test_miniature_sweep_end_to_end(tmp_path, saved_policies):
     cmd = [sys.executable, "-m", "fleet_torchrl.sweeps", "-m", "+experiment=sweep_pc",
            "sweep.value=0.4,0.8", "eval.n_sims=16", "eval.ticks=400",
            "sweep.policies=[rule,heuristic,tabular,dqn_partial]",
-           f"table.policies_dir={root}", f"sweep.out={out}",
+           f"table.policies_dir={root}", f"sweep.out={out}", TINY_SEARCH,
+           f"sweep.search_dir={tmp_path / 'search'}",
            f"hydra.sweep.dir={tmp_path / 'multirun'}"]
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
@@ -26,15 +32,32 @@ def test_miniature_sweep_end_to_end(tmp_path, saved_policies):
     assert sweeps_summary.main(["pc", "--out", str(out), "--expect", "p_c=0.4", "p_c=0.8"]) == 0
     rows = list(csv.DictReader((out / "pc.csv").open()))
     assert set(rows[0]) == {"param", "value", "policy", "trips_mean", "trips_std", "queue_mean",
-                            "failure_rate", "gain_pct", "gain_ci95"}
-    assert len(rows) == 8 and {r["policy"] for r in rows} == {"rule", "heuristic", "tabular",
-                                                              "dqn_partial"}
+                            "failure_rate", "gain_pct", "gain_ci95", "share_of_optimum_pct"}
+    assert len(rows) == 10 and {r["policy"] for r in rows} == {"rule", "heuristic", "tabular",
+                                                               "dqn_partial", "optimum"}
     assert all(float(r["gain_pct"]) == 0.0 for r in rows if r["policy"] == "rule")
+    for r in rows:  # the share is the gain over the optimum's gain, where that is positive
+        best = next(float(o["gain_pct"]) for o in rows
+                    if o["policy"] == "optimum" and o["value"] == r["value"])
+        if best > 0:
+            assert float(r["share_of_optimum_pct"]) == pytest.approx(
+                100 * float(r["gain_pct"]) / best, rel=1e-9)
+        else:
+            assert r["share_of_optimum_pct"] == ""
+    # each point searched its own site: two cached searches, keyed by their settings
+    assert sorted(p.parent.parent.name for p in (tmp_path / "search").glob("*/*/policy.pt")) == [
+        "p_c=0.4", "p_c=0.8"]
     assert (out / "pc.png").stat().st_size > 1000 and (out / "pc.json").exists()
     # a rerun skips the finished points; a point that cannot run is reported, not fatal
     r2 = subprocess.run(cmd[:5] + ["sweep.value=0.8"] + cmd[6:], capture_output=True,
                         text=True, timeout=300)
     assert "exists, skipping" in r2.stdout
+    # other evaluation settings: the point is recomputed, its search reused
+    r4 = subprocess.run(cmd[:5] + ["sweep.value=0.8", "eval.n_sims=12"] + cmd[7:],
+                        capture_output=True, text=True, timeout=300)
+    assert "recomputing" in r4.stdout and "reusing the search" in r4.stdout, r4.stdout
+    assert all(r["policy"] == "optimum" or r["trips_mean"] > 0 for r in
+               json.loads((out / "pc" / "p_c=0.8.json").read_text())["rows"])
     bad = cmd[:5] + ["sweep.value=0.6"] + [c for c in cmd[6:] if "policies_dir" not in c] + [
         f"table.policies_dir={tmp_path / 'nowhere'}"]
     r3 = subprocess.run(bad, capture_output=True, text=True, timeout=300)
