@@ -12,7 +12,8 @@ field name or a wrong type is rejected by Hydra when the config is composed.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import sys
+from dataclasses import dataclass, field, fields, is_dataclass
 from pathlib import Path
 from typing import Any
 
@@ -104,13 +105,84 @@ def compose_config(overrides: list[str] | tuple[str, ...] = ()) -> Config:
         return to_config(compose(config_name="config", overrides=list(overrides)))
 
 
+def unknown_keys(node: Any, path: str = "") -> list[str]:
+    """Keys of a composed config that its schema does not have (added with ``+``), each with
+    the settings its group does have."""
+    out: list[str] = []
+    if not isinstance(node, DictConfig):
+        return out
+    schema = OmegaConf.get_type(node)
+    known = {f.name for f in fields(schema)} if is_dataclass(schema) else None
+    for key in node.keys():
+        here = f"{path}{key}"
+        if known is not None and key not in known:
+            out.append(f"{here} is not a setting of {path.rstrip('.') or 'the config'} "
+                       f"(allowed: {', '.join(sorted(known))})")
+            continue
+        if known is not None and not OmegaConf.is_missing(node, key):
+            out += unknown_keys(node._get_node(key), f"{here}.")
+    return out
+
+
 def to_config(cfg: DictConfig | Config) -> Config:
-    """Turn a composed Hydra config into validated dataclasses."""
+    """Turn a composed Hydra config into validated dataclasses; a key the schema does not
+    have (e.g. ``+site.pc=0.5``, a misspelt ``site.p_c``) is rejected, naming it."""
+    if isinstance(cfg, DictConfig):
+        bad = unknown_keys(cfg)
+        if bad:
+            raise ConfigError(bad[0])
     obj = OmegaConf.to_object(cfg) if isinstance(cfg, DictConfig) else cfg
     if not isinstance(obj, Config):  # composed without the schema (e.g. plain YAML in a test)
         raise ConfigError("config was not composed from the 'base_config' schema")
     return validate(obj)
 
 
-__all__ = ["CONF_DIR", "Config", "ConfigError", "compose_config", "register_configs",
-           "to_config", "validate"]
+def one_line(exc: BaseException) -> str:
+    """A Hydra or OmegaConf error message on one line (with its cause, the options a group
+    offers, and none of Hydra's search-path listing)."""
+    text = str(exc).split("Config search path")[0]
+    lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+    lines = [ln for ln in lines if not ln.startswith(("full_key:", "object_type=", "provider=",
+                                                      "reference_type=", "Set the environment"))]
+    head, options = [], []
+    for ln in lines:
+        if head and head[-1].startswith("Available options"):
+            head[-1] = "; " + head[-1].rstrip(":").replace("Available options", "allowed")
+            options.append(ln)
+        elif options and not ln.startswith("base_"):
+            options.append(ln)
+        else:
+            head.append(ln)
+    options = [o for o in options if not o.startswith("base_")]
+    msg = " ".join(head).rstrip(":").replace(" ; ", "; ")
+    if options:
+        msg += f": {', '.join(options)}"
+    if exc.__cause__ is not None and str(exc.__cause__).strip():
+        msg += f": {str(exc.__cause__).strip().splitlines()[0]}"
+    return msg or type(exc).__name__
+
+
+def check_command_line(argv: list[str] | None = None) -> None:
+    """Compose a command line's overrides before Hydra runs the command, so that what Hydra
+    would report in many lines (an unknown option ``site=nope``, a value of the wrong type
+    ``site.n_vehicles=abc``, an unknown key ``+site.pc=0.5``, a bad value) ends in one line
+    ``error: ...`` and exit code 2. Multiruns and Hydra's own flags are left to Hydra."""
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    args = sys.argv[1:] if argv is None else argv
+    if any(a.startswith("-") for a in args):  # -m, --help, --cfg, ...: Hydra's business
+        return
+    overrides = [a for a in args if not a.lstrip("+~").startswith(("hydra.", "hydra/"))]
+    try:
+        compose_config(overrides)
+    except ConfigError as e:
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)
+    except (HydraException, OmegaConfBaseException) as e:
+        print(f"error: {one_line(e)}", file=sys.stderr)
+        sys.exit(2)
+
+
+__all__ = ["CONF_DIR", "Config", "ConfigError", "check_command_line", "compose_config",
+           "register_configs", "to_config", "validate"]

@@ -16,7 +16,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from .agents import make_policy
-from .config import Config, register_configs, to_config
+from .config import Config, check_command_line, register_configs, to_config
 from .evaluation import evaluate_with, format_table, save_result
 from .evaluation.results import check_result_path
 from .utils.cli import user_errors
@@ -50,4 +50,5 @@ def main(dcfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
+    check_command_line()
     main()

@@ -15,7 +15,7 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
-from .config import register_configs, to_config
+from .config import check_command_line, register_configs, to_config
 from .experiments.objective import candidate_policies, criterion, mdp_score, score_table
 from .utils.cli import user_errors
 from .utils.runinfo import run_info, write_json, write_text
@@ -44,4 +44,5 @@ def main(dcfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
+    check_command_line()
     main()

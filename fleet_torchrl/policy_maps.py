@@ -8,7 +8,7 @@ from __future__ import annotations
 import hydra
 from omegaconf import DictConfig
 
-from .config import register_configs, to_config
+from .config import check_command_line, register_configs, to_config
 from .experiments.policy_maps import run
 from .utils.cli import user_errors
 
@@ -22,4 +22,5 @@ def main(dcfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
+    check_command_line()
     main()

@@ -14,7 +14,7 @@ import traceback
 import hydra
 from omegaconf import DictConfig
 
-from .config import register_configs, to_config
+from .config import check_command_line, register_configs, to_config
 from .experiments.sweeps import point_path, run_point
 from .utils.cli import user_errors
 from .utils.runinfo import write_text
@@ -36,4 +36,5 @@ def main(dcfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
+    check_command_line()
     main()

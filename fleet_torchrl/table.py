@@ -15,7 +15,7 @@ import sys
 import hydra
 from omegaconf import DictConfig
 
-from .config import register_configs, to_config
+from .config import check_command_line, register_configs, to_config
 from .experiments.table import run
 from .utils.cli import user_errors
 
@@ -34,4 +34,5 @@ def main(dcfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
+    check_command_line()
     main()

@@ -18,7 +18,7 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from .config import Config, register_configs, to_config
+from .config import Config, check_command_line, register_configs, to_config
 from .training import Trainer
 from .utils.cli import user_errors
 from .utils.runinfo import run_info, write_json
@@ -51,4 +51,5 @@ def main(dcfg: DictConfig) -> float:
 
 
 if __name__ == "__main__":
+    check_command_line()
     main()

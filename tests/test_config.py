@@ -101,3 +101,26 @@ def test_cli_reports_one_line_error_and_exit_code():
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 2
     assert r.stderr.strip().splitlines()[-1] == "error: site.p_c=2.0 is invalid: allowed [0.0, 1.0]"
+
+
+def test_unknown_keys_added_with_plus_are_rejected():
+    with pytest.raises(ConfigError, match=r"^site.pc is not a setting of site \(allowed: "):
+        compose_config(["+site.pc=0.5"])
+    with pytest.raises(ConfigError, match="^train.eval_sim is not a setting of train"):
+        compose_config(["+train.eval_sim=3"])
+
+
+@pytest.mark.parametrize("override, expected", [
+    ("site=nope", "error: In 'config': Could not find 'site/nope'; allowed in 'site': default, "
+                  "five_vehicles, no_closure, slow_charger"),
+    ("site.n_vehicles=abc", "error: Error merging override site.n_vehicles=abc: Value 'abc' of "
+                            "type 'str' could not be converted to Integer"),
+    ("+site.pc=0.5", "error: site.pc is not a setting of site (allowed: closed_node, e_charge, "
+                     "e_idle, e_move, leave_when_full, n_nodes, n_vehicles, name, p_c, soc_low, "
+                     "t_c, xi)"),
+])
+def test_hydra_level_errors_are_one_line_with_exit_code_2(override, expected):
+    r = subprocess.run([sys.executable, "-m", "fleet_torchrl.evaluate", override],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.strip().splitlines() == [expected]

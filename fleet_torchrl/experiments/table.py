@@ -34,7 +34,7 @@ from ..config import Config, compose_config
 from ..evaluation import evaluate_with, gain_over, save_result, seed_interval
 from ..training import CHECKPOINT, checkpoint_mismatch, training_fingerprint
 from ..utils.plotting import plot_gain_boxplot, plot_learning_curves, save_figure
-from ..utils.runinfo import read_json, run_info, write_csv, write_json, write_text
+from ..utils.runinfo import file_sha256, read_json, run_info, write_csv, write_json, write_text
 
 BASELINES = ("rule", "heuristic")
 ROW_KEYS = ("policy", "objective", "seeds", "trips_mean", "trips_std", "queue_mean",
@@ -65,14 +65,19 @@ def run_overrides(name: str, seed: int, cfg: Config) -> list[str]:
 
 
 def reusable(out_dir: Path, run_cfg: Config) -> bool:
-    """A saved policy is reused only with a summary that records the same training config."""
+    """A saved policy is reused only with a summary that records the same training config and
+    the hash of that policy file."""
     summary = out_dir / "train_summary.json"
     if not ((out_dir / POLICY_FILE).is_file() and summary.is_file()):
         return False
     try:
-        return read_json(summary).get("fingerprint") == training_fingerprint(run_cfg)
+        rec = read_json(summary)
     except ValueError:  # unreadable summary: train again
         return False
+    # the summary must belong to this configuration and to this very policy file (a killed
+    # or concurrent run can leave a policy beside another run's summary)
+    return (rec.get("fingerprint") == training_fingerprint(run_cfg)
+            and rec.get("policy_sha256") == file_sha256(out_dir / POLICY_FILE))
 
 
 def plan_training(name: str, seed: int, cfg: Config) -> list[str] | None:

@@ -48,12 +48,15 @@ from ..env import FleetChargingEnv
 from ..evaluation import evaluate_policy, gain_over
 from ..utils.monitor import Monitor
 from ..utils.plotting import plot_policy_map
-from ..utils.runinfo import run_info, write_json
+from ..utils.runinfo import file_sha256, run_info, write_json
 from .checkpoint import CHECKPOINT, checkpoint_mismatch, training_fingerprint
 from .progress import EvalEntry, Progress, selection_score
 
 if TYPE_CHECKING:
     from ..config import Config
+
+# the config groups that shape what a run learns (its TensorBoard hparams)
+TRAINING_GROUPS = ("site", "state", "mdp", "agent", "network", "train")
 
 
 class EpisodeStats:
@@ -272,11 +275,24 @@ class Trainer:
             plt.close(fig)
         return entry
 
-    def save_best(self) -> None:
+    def save_best(self, path: Path | None = None) -> Path:
+        """Write the best policy so far (default: into the run's own folder)."""
         pol = self.best_policy
         pol.encoding = self.cfg.state.name
-        save_policy(self.out_dir / POLICY_FILE, pol, self.cfg.agent.name,
-                    meta=run_info(self.cfg, seed=self.cfg.seed))
+        return save_policy(path or self.run_dir / POLICY_FILE, pol, self.cfg.agent.name,
+                           meta=run_info(self.cfg, seed=self.cfg.seed))
+
+    def promote(self, summary: dict[str, Any]) -> dict[str, Any]:
+        """At the successful end of a run: publish the best policy to ``out_dir``
+        (``results/policies/<name>/`` by default) and its summary beside it, each written
+        atomically; the summary records the policy file's hash, so a reader can tell a
+        matching pair (``experiments.table.reusable``) from one left by a killed or a
+        concurrent run. While a run trains, ``out_dir`` is never touched."""
+        path = self.save_best(self.out_dir / POLICY_FILE)
+        summary = {**summary, "policy_sha256": file_sha256(path)}
+        write_json(self.run_dir / "train_summary.json", summary)
+        write_json(self.out_dir / "train_summary.json", summary)
+        return summary
 
     # ------------------------------------------------------------------ main loop
     def run(self, stop_after_rounds: int | None = None) -> dict[str, Any]:
@@ -329,10 +345,11 @@ class Trainer:
         self.save_checkpoint()
         summary = self.summary(resumed)
         if finished:
-            write_json(self.out_dir / "train_summary.json", summary)
-            write_json(self.run_dir / "train_summary.json", summary)
+            summary = self.promote(summary)
             best = summary["best"]
-            self.monitor.hparams(asdict(c), {"hparam/eval_trips": best["trips"],
+            hparams = {k: asdict(getattr(c, k)) for k in TRAINING_GROUPS}
+            self.monitor.hparams({**hparams, "seed": c.seed},
+                                 {"hparam/eval_trips": best["trips"],
                                              "hparam/gain_pct": best["gain_pct"],
                                              "hparam/failure_rate": best["failure_rate"]})
         self.monitor.close()

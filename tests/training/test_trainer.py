@@ -158,3 +158,27 @@ def test_snapshot_selection_follows_train_select():
             if p.is_better(res["failure_rate"], score):
                 p.best, kept = (res["failure_rate"], score), res
         assert kept is winner, (select, reward)
+
+
+def test_policy_is_promoted_only_at_a_successful_end(tmp_path):
+    """A killed run leaves results/policies untouched; a finished one publishes its policy
+    with a summary that names the policy file's hash (make table checks the pair)."""
+    from fleet_torchrl.experiments.table import reusable
+    from fleet_torchrl.utils.runinfo import file_sha256
+
+    over = [*TINY_TAB, "train.tensorboard=false"]
+    _train(over, tmp_path, stop_after=2)
+    assert (tmp_path / "policy.pt").is_file()  # the run's own folder has its best so far
+    assert not (tmp_path / "policy").exists()  # nothing published yet
+    cfg = compose_config([*over, f"train.out_dir={tmp_path}/policy", "resume=true"])
+    from fleet_torchrl.training import Trainer
+
+    summary = Trainer(cfg, tmp_path).run()
+    pub = tmp_path / "policy"
+    assert summary["policy_sha256"] == file_sha256(pub / "policy.pt")
+    assert reusable(pub, cfg)
+    # another run's policy beside this summary (a concurrent writer): not reused
+    other = tmp_path / "other"
+    _train([*over, "seed=5"], other)
+    (other / "policy" / "policy.pt").replace(pub / "policy.pt")
+    assert not reusable(pub, cfg)
