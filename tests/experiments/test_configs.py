@@ -23,6 +23,7 @@ def test_every_experiment_config_composes(name):
     if name.startswith("sweep_"):
         assert cfg.eval.n_sims == 500 and cfg.eval.ticks == 10_000
         assert dcfg.hydra.launcher._target_.endswith("JoblibLauncher")
+        assert dcfg.hydra.launcher.n_jobs == 2
         values = str(dcfg.hydra.sweeper.params["sweep.value"]).split(",")
         assert len(values) >= 5 and cfg.sweep.name == name.removeprefix("sweep_")
 
@@ -32,3 +33,31 @@ def test_cluster_launcher_configs_are_documented():
         text = (CONF_DIR / "hydra" / "launcher" / f"{name}.yaml").read_text()
         assert text.startswith("#") and f"hydra/launcher={name}" in text
         assert yaml.safe_load(text)["defaults"] == [base]
+
+
+def _plugin(name: str) -> bool:
+    import importlib.util
+
+    return importlib.util.find_spec(name) is not None
+
+
+LAUNCHERS = [
+    ("local", "JoblibLauncher", "hydra_plugins.hydra_joblib_launcher"),
+    ("slurm", "SlurmLauncher", "hydra_plugins.hydra_submitit_launcher"),
+    ("submitit_local", "LocalLauncher", "hydra_plugins.hydra_submitit_launcher"),
+    ("ray_cluster", "RayLauncher", "hydra_plugins.hydra_ray_launcher"),
+]
+
+
+@pytest.mark.parametrize("launcher, target, plugin", LAUNCHERS)
+@pytest.mark.parametrize("name", [n for n in EXPERIMENTS if n != "policy_maps"])
+def test_every_experiment_composes_with_every_launcher(name, launcher, target, plugin):
+    """A launcher given on the command line replaces the experiment's local one whole: no
+    joblib setting (n_jobs) leaks into a Slurm or Ray launcher config."""
+    if not _plugin(plugin.split(".")[0]) or not _plugin(plugin):
+        pytest.skip(f"{plugin} is not installed (pip install -e '.[cluster]')")
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        dcfg = compose(config_name="config", return_hydra_config=True,
+                       overrides=[f"+experiment={name}", f"hydra/launcher={launcher}"])
+    assert dcfg.hydra.launcher._target_.endswith(target)
+    assert ("n_jobs" in dcfg.hydra.launcher) == (launcher == "local")

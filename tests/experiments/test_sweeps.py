@@ -63,3 +63,23 @@ def test_miniature_sweep_end_to_end(tmp_path, saved_policies):
     r3 = subprocess.run(bad, capture_output=True, text=True, timeout=300)
     assert r3.returncode == 0 and (out / "pc" / "p_c=0.6.error").exists()
     assert sweeps_summary.main(["pc", "--out", str(out)]) == 1  # failed point reported
+
+
+@pytest.mark.slow
+def test_miniature_sweep_through_submitit(tmp_path):
+    """The same sweep through hydra-submitit-launcher's local executor (what a Slurm run
+    uses, with processes instead of cluster jobs)."""
+    pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
+    out = tmp_path / "sweeps"
+    cmd = [sys.executable, "-m", "fleet_torchrl.sweeps", "-m", "+experiment=sweep_pc",
+           "hydra/launcher=submitit_local", "hydra.launcher.timeout_min=5",
+           "sweep.value=0.4,0.8", "eval.n_sims=8", "eval.ticks=300",
+           "sweep.policies=[rule,heuristic]", "sweep.search=false", f"sweep.out={out}",
+           f"hydra.sweep.dir={tmp_path / 'multirun'}"]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "Submitit 'local' sweep output dir" in r.stdout + r.stderr
+    assert sorted(p.name for p in (out / "pc").glob("*.json")) == ["p_c=0.4.json", "p_c=0.8.json"]
+    rows = json.loads((out / "pc" / "p_c=0.8.json").read_text())["rows"]
+    assert {row["policy"] for row in rows} == {"rule", "heuristic"}
+    assert list((tmp_path / "multirun" / ".submitit").iterdir())  # submitit's job folders
