@@ -3,6 +3,7 @@
 from .config import EvalConfig
 from .protocol import evaluate_policy, evaluate_with, simulate
 from .results import (
+    check_result_pair,
     compare,
     format_table,
     gain_over,
@@ -12,5 +13,6 @@ from .results import (
     summarize,
 )
 
-__all__ = ["EvalConfig", "compare", "evaluate_policy", "evaluate_with", "format_table",
-           "gain_over", "load_result", "save_result", "seed_interval", "simulate", "summarize"]
+__all__ = ["EvalConfig", "check_result_pair", "compare", "evaluate_policy", "evaluate_with",
+           "format_table", "gain_over", "load_result", "save_result", "seed_interval",
+           "simulate", "summarize"]

@@ -14,7 +14,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from ..utils.runinfo import read_json, write_csv, write_json
+from ..utils.runinfo import file_sha256, read_json, write_csv, write_json
 
 Z95 = 1.959963984540054
 # two-sided 95 % quantiles of Student's t for 1..10 degrees of freedom
@@ -121,14 +121,30 @@ def check_result_path(path: str | Path) -> Path:
 
 
 def save_result(result: dict[str, Any], path: str | Path) -> tuple[Path, Path]:
-    """Write the result JSON and its per-simulation CSV (same stem, ``.csv``) atomically."""
+    """Write the per-simulation CSV (same stem, ``.csv``), then the result JSON, each
+    atomically. The JSON is the unit's commit: it records the CSV's SHA-256, so a CSV left
+    by a killed or a concurrent writer beside another run's JSON is told apart
+    (:func:`check_result_pair`)."""
     path = Path(path)
     if path.suffix != ".json":
         raise ValueError(f"result path must end in .json, got {path}")
     csv_path = path.with_suffix(".csv")
     write_csv(csv_path, record_rows(result), CSV_FIELDS)
-    write_json(path, result)
+    write_json(path, {**result, "csv_sha256": file_sha256(csv_path)})
     return path, csv_path
+
+
+def check_result_pair(path: str | Path) -> dict[str, Any]:
+    """The result at ``path`` after checking that the CSV beside it is the one it was
+    written with; a mismatched pair raises ``ValueError``."""
+    path = Path(path)
+    res = load_result(path)
+    csv_path = path.with_suffix(".csv")
+    want = res.get("csv_sha256")
+    if want is None or not csv_path.is_file() or file_sha256(csv_path) != want:
+        raise ValueError(f"{csv_path} does not belong to {path} (a killed or concurrent write"
+                         "?): evaluate again")
+    return res
 
 
 def load_result(path: str | Path) -> dict[str, Any]:

@@ -7,6 +7,9 @@ refused with the list of fields that differ.
 
 from __future__ import annotations
 
+import pickle
+import zipfile
+import zlib
 from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -17,6 +20,11 @@ if TYPE_CHECKING:
     from ..config import Config
 
 CHECKPOINT = "checkpoint.ckpt"
+
+# what reading a damaged checkpoint raises: a truncated or garbled archive, a member whose
+# CRC fails, a tensor file torch cannot unpickle
+UNREADABLE = (OSError, ValueError, KeyError, EOFError, RuntimeError, zipfile.BadZipFile,
+              zlib.error, pickle.UnpicklingError)
 
 # settings a resumed run may change: they steer the run, not what it learns
 RUN_CONTROL = {"out_dir", "device", "threads", "tensorboard", "progress", "checkpoint_every"}
@@ -51,7 +59,7 @@ def checkpoint_mismatch(path: str | Path, cfg: Config) -> list[str]:
 
     try:
         meta = Checkpoint.manifest(path).get("metadata") or {}
-    except (CheckpointError, OSError, ValueError, KeyError) as e:
+    except (CheckpointError, *UNREADABLE) as e:
         raise ValueError(f"cannot resume from {path}: not a readable checkpoint ({e})") from None
     stored = meta.get("config")
     if stored is None:

@@ -49,7 +49,7 @@ from ..evaluation import evaluate_policy, gain_over
 from ..utils.monitor import Monitor
 from ..utils.plotting import plot_policy_map
 from ..utils.runinfo import file_sha256, run_info, write_json
-from .checkpoint import CHECKPOINT, checkpoint_mismatch, training_fingerprint
+from .checkpoint import CHECKPOINT, UNREADABLE, checkpoint_mismatch, training_fingerprint
 from .progress import EvalEntry, Progress, selection_score
 
 if TYPE_CHECKING:
@@ -199,7 +199,7 @@ class Trainer:
                              "settings or start a new run directory")
         try:
             self.checkpoint.load(self.checkpoint_path, map_location=self.device)
-        except (CheckpointError, OSError, ValueError, KeyError) as e:
+        except (CheckpointError, *UNREADABLE) as e:
             raise ValueError(f"cannot resume from {self.checkpoint_path}: {e}") from None
         return True
 

@@ -98,3 +98,26 @@ def test_bad_output_paths_fail_before_the_simulation(tmp_path):
                 check_result_path(locked / "r.json")
     finally:
         locked.chmod(0o700)
+
+
+def test_result_json_and_csv_are_one_unit(tmp_path, monkeypatch):
+    """The JSON names its CSV's hash: a CSV written by a killed or a concurrent writer beside
+    another run's JSON is detected."""
+    from fleet_torchrl.evaluation import check_result_pair
+    from fleet_torchrl.evaluation import results as results_mod
+
+    site = SiteConfig()
+    rule = evaluate_policy(RulePolicy(), site, 8, 500, seed=0)
+    heur = evaluate_policy(HeuristicPolicy(), site, 8, 500, seed=0)
+    js, _ = save_result(rule, tmp_path / "r.json")
+    assert check_result_pair(js)["trips_mean"] == rule["trips_mean"]
+
+    def killed(*args, **kwargs):  # the writer dies between the CSV and the JSON
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(results_mod, "write_json", killed)
+    with pytest.raises(KeyboardInterrupt):
+        save_result(heur, js)
+    assert load_result(js)["policy"] == "rule"  # the old JSON is intact ...
+    with pytest.raises(ValueError, match="does not belong to"):
+        check_result_pair(js)  # ... and the new CSV beside it is told apart

@@ -182,3 +182,21 @@ def test_policy_is_promoted_only_at_a_successful_end(tmp_path):
     _train([*over, "seed=5"], other)
     (other / "policy" / "policy.pt").replace(pub / "policy.pt")
     assert not reusable(pub, cfg)
+
+
+def test_checkpoint_with_a_corrupted_member_is_a_clear_error(tmp_path):
+    import zipfile
+
+    tiny = [*TINY_TAB, "train.max_episodes=64", "train.tensorboard=false"]
+    _train(tiny, tmp_path, stop_after=1)
+    ckpt = tmp_path / "checkpoint.ckpt"
+    with zipfile.ZipFile(ckpt) as z:
+        infos = [(i.filename, i.header_offset, i.compress_size) for i in z.infolist()]
+    raw = bytearray(ckpt.read_bytes())
+    name, offset, size = max(infos, key=lambda t: t[2])  # the largest member's data
+    start = offset + 30 + len(name.encode())  # local header (no extra field in these files)
+    for k in range(start + 10, start + min(size, 200)):
+        raw[k] ^= 0xFF
+    ckpt.write_bytes(bytes(raw))
+    with pytest.raises(ValueError, match="cannot resume from .*checkpoint.ckpt"):
+        _train(tiny, tmp_path, resume=True)
