@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.installed
 ARGS   ?=
 PYTEST_ARGS ?=
 
-.PHONY: help install test test-fast lint format table train evaluate grid bench tensorboard clean \
+.PHONY: help install test test-fast lint format table quick train evaluate grid bench tensorboard clean \
         policies policy-maps sweep-pc sweep-tc sweep-nv sweeps experiments report objective
 TIMED  := $(PY) -m fleet_torchrl.utils.timing
 
@@ -36,6 +36,9 @@ format: $(STAMP)  ## apply ruff's automatic lint fixes (import order, modern syn
 
 table: $(STAMP)  ## main job: train the learned policies over 3 seeds (if missing), compare with rule and heuristic -> results/table
 	$(TIMED) table -- $(PY) -m fleet_torchrl.table $(ARGS)
+
+quick: $(STAMP)  ## a first look at the main comparison in minutes (1 seed, short runs) -> results/quick
+	$(TIMED) quick -- $(PY) -m fleet_torchrl.table +experiment=quick $(ARGS)
 
 policies: $(STAMP)  ## train the learned policies that are missing (no evaluation)
 	$(PY) -m fleet_torchrl.table table.evaluate=false $(ARGS)
