@@ -9,6 +9,7 @@ config, seed, git commit, package versions) plus a per-simulation CSV beside it.
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import hydra
@@ -23,6 +24,7 @@ from .utils.cli import user_errors
 from .utils.runinfo import run_info
 
 register_configs()
+log = logging.getLogger("fleet_torchrl.evaluate")  # to stdout and the Hydra job's log file
 
 
 def run(cfg: Config, out: str | Path | None) -> dict:
@@ -32,12 +34,12 @@ def run(cfg: Config, out: str | Path | None) -> dict:
     e = cfg.eval
     result = evaluate_with(policy, cfg.site, e, name=cfg.agent.name)
     result["meta"] = run_info(cfg, seed=e.seed)
-    print(format_table([result]))
-    print(f"({e.n_sims} sims x {e.ticks} ticks on site '{cfg.site.name}', seed {e.seed}, "
+    log.info("\n" + format_table([result]))
+    log.info(f"({e.n_sims} sims x {e.ticks} ticks on site '{cfg.site.name}', seed {e.seed}, "
           f"{result['wall_time_s']:.2f} s)")
     if out is not None:
         js, cs = save_result(result, out)
-        print(f"wrote {js} and {cs}")
+        log.info(f"wrote {js} and {cs}")
     return result
 
 

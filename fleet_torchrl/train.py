@@ -12,6 +12,7 @@ and checkpoints to ``<run dir>/checkpoint.ckpt``. A killed run continues with
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import hydra
@@ -24,6 +25,7 @@ from .utils.cli import user_errors
 from .utils.runinfo import run_info, write_json
 
 register_configs()
+log = logging.getLogger("fleet_torchrl.train")  # Hydra writes it to stdout and <run dir>/train.log
 
 
 def train(cfg: Config, run_dir: str | Path) -> dict:
@@ -35,7 +37,7 @@ def train(cfg: Config, run_dir: str | Path) -> dict:
     trainer = Trainer(cfg, run_dir)
     summary = trainer.run()
     best = summary["best"] or {}
-    print(f"{summary['name']}: {summary['rounds']} rounds, {summary['episodes']} episodes, "
+    log.info(f"{summary['name']}: {summary['rounds']} rounds, {summary['episodes']} episodes, "
           f"{summary['wall_s']:.0f} s; best eval {best.get('trips', float('nan')):.1f} trips "
           f"({best.get('gain_pct', float('nan')):+.2f} % vs rule), failure rate "
           f"{best.get('failure_rate', float('nan')):.3f}; policy -> {summary['policy']}")

@@ -32,6 +32,7 @@ atomically every ``checkpoint_every`` rounds and at the end.
 from __future__ import annotations
 
 import copy
+import logging
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -54,6 +55,8 @@ from .progress import EvalEntry, Progress, selection_score
 
 if TYPE_CHECKING:
     from ..config import Config
+
+log = logging.getLogger(__name__)
 
 # the config groups that shape what a run learns (its TensorBoard hparams)
 TRAINING_GROUPS = ("site", "state", "mdp", "agent", "network", "train")
@@ -261,6 +264,9 @@ class Trainer:
                           queue=res["queue_mean"], failure_rate=res["failure_rate"],
                           gain_pct=gain, wall_s=p.wall_s)
         p.history.append(entry)
+        log.info("round %d: eval %.1f trips (%+.2f %% vs rule), queue %.1f, failure rate %.3f%s",
+                 p.round, entry.trips, gain, entry.queue, entry.failure_rate,
+                 " (new best)" if improved else "")
         self.monitor.scalars({"eval/trips": res["trips_mean"], "eval/queue": res["queue_mean"],
                               "eval/failure_rate": res["failure_rate"],
                               "eval/gain_over_rule_pct": gain,

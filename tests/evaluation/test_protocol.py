@@ -58,6 +58,8 @@ def test_cli_end_to_end(tmp_path):
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     assert "| rule |" in r.stdout
+    # Python logging fills the Hydra job's log file
+    assert f"wrote {out}" in (tmp_path / "hydra" / "evaluate.log").read_text()
     res = json.loads(out.read_text())
     assert res["n_sims"] == 20 and res["ticks"] == 500 and res["policy"] == "rule"
     assert res["site"]["n_vehicles"] == 3
