@@ -14,12 +14,12 @@ TIMED  := $(PY) -m fleet_torchrl.utils.timing
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-14s %s\n", $$1, $$2}'
 
-install: $(STAMP)  ## create .venv and install the package with its dev and cluster (submitit) tools
+install: $(STAMP)  ## create .venv and install the package with its dev, cluster (submitit) and gym (Gymnasium, SB3) extras
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[dev,cluster]'
+	$(PY) -m pip install --quiet -e '.[dev,cluster,gym]'
 	@touch $(STAMP)
 
 test: $(STAMP)  ## run the whole test suite (slow end-to-end tests included)

@@ -1,0 +1,148 @@
+"""The decision process for the Gymnasium and Stable-Baselines3 ecosystems (``pip install -e
+'.[gym]'``): thin adapters over :class:`~fleet_torchrl.env.FleetChargingEnv`, with the same
+observations, rewards and flags (one step = one decision epoch, MODEL §2).
+
+* :class:`FleetGymEnv`: a ``gymnasium.Env`` of one site (``Box(0, 1, (F,))`` observations,
+  ``Discrete(2)`` actions: 0 pass, 1 charge), registered as ``FleetCharging-v0``, so
+  ``gymnasium.make("FleetCharging-v0", site=..., encoding=...)`` and TorchRL's own
+  ``GymEnv("FleetCharging-v0")`` both build it. ``reset(seed=s)`` restarts the stream of
+  training sites of seed ``s`` (common random numbers: the same seed, the same sites).
+* :class:`FleetVecEnv`: a Stable-Baselines3 ``VecEnv`` over ``num_sites`` sites stepped
+  together by the batched simulator; a site whose episode ends restarts at once and reports
+  its last observation as ``infos[i]["terminal_observation"]`` and a tick-budget end as
+  ``infos[i]["TimeLimit.truncated"]``, as SB3's own vectorised environments do.
+
+Inside TorchRL, use :class:`FleetChargingEnv` directly: it already is a batched ``EnvBase``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium
+import numpy as np
+import torch
+from gymnasium import spaces
+
+from ..sim import SiteConfig
+from .config import MDPConfig
+from .fleet_env import FleetChargingEnv
+
+GYM_ID = "FleetCharging-v0"
+
+
+def _spaces(env: FleetChargingEnv) -> tuple[spaces.Box, spaces.Discrete]:
+    n = env.observation_spec["observation"].shape[-1]
+    return spaces.Box(0.0, 1.0, shape=(n,), dtype=np.float32), spaces.Discrete(2)
+
+
+def _info(td, i: int = 0) -> dict[str, Any]:
+    return {k: int(td[k][i, 0]) for k in ("trips", "queue_ticks", "ticks")}
+
+
+class FleetGymEnv(gymnasium.Env):
+    """One charging site as a Gymnasium environment (see the module docstring)."""
+
+    metadata = {"render_modes": []}
+
+    def __init__(self, site: SiteConfig | None = None, encoding: str = "partial",
+                 mdp: MDPConfig | None = None, seed: int = 0) -> None:
+        self.env = FleetChargingEnv(site=site, encoding=encoding, num_sites=1, mdp=mdp,
+                                    seed=seed)
+        self.observation_space, self.action_space = _spaces(self.env)
+        self._td = None
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        if seed is not None:
+            self.env.set_seed(int(seed))
+        self._td = self.env.reset()
+        return self._td["observation"][0].numpy().copy(), _info(self._td)
+
+    def step(self, action):
+        if self._td is None:
+            raise RuntimeError("call reset() before step()")
+        td = self._td.set("action", torch.as_tensor([int(action)], dtype=torch.int64))
+        td = self.env.step(td)
+        nxt = td["next"]
+        obs = nxt["observation"][0].numpy().copy()
+        terminated = bool(nxt["terminated"][0, 0])
+        truncated = bool(nxt["truncated"][0, 0])
+        self._td = self.env.step_mdp(td)
+        return obs, float(nxt["reward"][0, 0]), terminated, truncated, _info(nxt)
+
+
+try:  # Stable-Baselines3 is optional within the gym extra's users
+    from stable_baselines3.common.vec_env import VecEnv
+except ImportError:  # pragma: no cover - exercised only without SB3
+    VecEnv = None
+
+
+if VecEnv is not None:
+
+    class FleetVecEnv(VecEnv):
+        """``num_sites`` charging sites as one Stable-Baselines3 ``VecEnv``."""
+
+        def __init__(self, num_sites: int = 8, site: SiteConfig | None = None,
+                     encoding: str = "partial", mdp: MDPConfig | None = None,
+                     seed: int = 0) -> None:
+            self.env = FleetChargingEnv(site=site, encoding=encoding, num_sites=num_sites,
+                                        mdp=mdp, seed=seed)
+            obs_space, act_space = _spaces(self.env)
+            super().__init__(num_sites, obs_space, act_space)
+            self._td = None
+            self._actions = None
+
+        def reset(self):
+            seed = self._seeds[0] if getattr(self, "_seeds", None) and \
+                self._seeds[0] is not None else None
+            if seed is not None:
+                self.env.set_seed(int(seed))
+            if hasattr(self, "_reset_seeds"):
+                self._reset_seeds()
+            self._td = self.env.reset()
+            return self._td["observation"].numpy().copy()
+
+        def step_async(self, actions) -> None:
+            self._actions = torch.as_tensor(np.asarray(actions), dtype=torch.int64)
+
+        def step_wait(self):
+            td = self._td.set("action", self._actions.reshape(self.num_envs))
+            td, root = self.env.step_and_maybe_reset(td)
+            nxt = td["next"]
+            done = nxt["done"][:, 0].numpy().copy()
+            trunc = nxt["truncated"][:, 0].numpy()
+            last = nxt["observation"].numpy()
+            infos: list[dict[str, Any]] = [_info(nxt, i) for i in range(self.num_envs)]
+            for i in np.flatnonzero(done):
+                infos[i]["terminal_observation"] = last[i].copy()
+                infos[i]["TimeLimit.truncated"] = bool(trunc[i])
+            self._td = root
+            return (root["observation"].numpy().copy(), nxt["reward"][:, 0].numpy().copy(),
+                    done, infos)
+
+        def close(self) -> None:
+            pass
+
+        def get_attr(self, attr_name: str, indices=None) -> list[Any]:
+            return [getattr(self, attr_name)] * len(self._indices(indices))
+
+        def set_attr(self, attr_name: str, value: Any, indices=None) -> None:
+            setattr(self, attr_name, value)
+
+        def env_method(self, method_name: str, *args, indices=None, **kwargs) -> list[Any]:
+            return [getattr(self, method_name)(*args, **kwargs)] * len(self._indices(indices))
+
+        def env_is_wrapped(self, wrapper_class, indices=None) -> list[bool]:
+            return [False] * len(self._indices(indices))
+
+        def _indices(self, indices) -> list[int]:
+            if indices is None:
+                return list(range(self.num_envs))
+            return [indices] if isinstance(indices, int) else list(indices)
+
+
+if GYM_ID not in gymnasium.registry:
+    gymnasium.register(id=GYM_ID, entry_point=FleetGymEnv)
+
+__all__ = ["GYM_ID", "FleetGymEnv", "FleetVecEnv"]
