@@ -5,6 +5,8 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 ARGS   ?=
+# optional-dependency groups that make install adds (CI adds ray)
+EXTRAS ?= dev,cluster,gym
 PYTEST_ARGS ?=
 
 .PHONY: help install test test-fast lint format table quick train evaluate grid bench tensorboard clean \
@@ -14,12 +16,12 @@ TIMED  := $(PY) -m fleet_torchrl.utils.timing
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-14s %s\n", $$1, $$2}'
 
-install: $(STAMP)  ## create .venv and install the package with its dev, cluster (submitit) and gym (Gymnasium, SB3) extras
+install: $(STAMP)  ## create .venv and install the package with the EXTRAS groups (dev, cluster, gym; CI adds ray)
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[dev,cluster,gym]'
+	$(PY) -m pip install --quiet -e '.[$(EXTRAS)]'
 	@touch $(STAMP)
 
 test: $(STAMP)  ## run the whole test suite (slow end-to-end tests included)

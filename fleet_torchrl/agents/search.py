@@ -13,8 +13,9 @@ Policy classes (``agent.policy_class``), both on the ``partial`` encoding:
   Bernoulli probability of *charge* per cell, started from a named policy (``agent.init``,
   ``p = 1 - p_min`` where it charges, ``p_min`` elsewhere; ``uniform``: 0.5 everywhere).
 * ``mlp``: a small network ``3 -> hidden (tanh) x depth -> 1`` that charges iff its output is
-  positive. The search distribution is a diagonal Gaussian over its weights, started at
-  ``N(0, sigma_init^2)``.
+  positive. The search distribution is a diagonal Gaussian over its weights with standard
+  deviation ``sigma_init``, centred on a network that imitates the ``agent.init`` policy
+  (:func:`clone_policy`; ``uniform``: centred on 0).
 
 One generation (one round of the training loop, :mod:`fleet_torchrl.training`):
 
@@ -67,6 +68,7 @@ class SearchAgentConfig(AgentConfig):
     ticks: int = 3000  # ticks per site and generation
     generations: int = 100  # rounds of the training loop
     smoothing: float = 0.5  # step towards the elite: new = (1 - s) old + s elite
+    elitist: bool = False  # true: only elite candidates that beat the mode (candidate 0) count
     init: str = "heuristic"  # table: starting policy, rule | heuristic | uniform
     p_min: float = 0.15  # table: charge probabilities stay in [p_min, 1 - p_min]
     hidden: int = 16  # mlp: units per hidden layer
@@ -229,7 +231,9 @@ class SearchLearner(Learner):
             self.register_buffer("std", torch.zeros(0))
         else:
             n = self.greedy.theta.numel()
-            self.register_buffer("mean", torch.zeros(n))
+            start = torch.zeros(n) if init_policy is None else clone_policy(
+                init_policy, self.sizes, seed)
+            self.register_buffer("mean", start)
             self.register_buffer("std", torch.full((n,), agent.sigma_init))
         self.register_buffer("generation", torch.zeros((), dtype=torch.int64))
         self._sync_greedy()
@@ -277,7 +281,13 @@ class SearchLearner(Learner):
         rec = evaluate_population(a.policy_class, cand, self.site_cfg, a.sites, a.ticks, seed,
                                   self.sizes)
         key = rank_key(rec["failed"], rec["trips"])
-        elite = cand[key.argsort(descending=True, stable=True)[:a.elite]].to(self.mean.dtype)
+        order = key.argsort(descending=True, stable=True)[:a.elite]
+        if a.elitist:  # only candidates that beat the mode on these sites pull the mean
+            order = order[key[order] > key[0]]
+        if order.numel() == 0:
+            self.generation += 1
+            return self._stats(rec, key, moved=0)
+        elite = cand[order].to(self.mean.dtype)
         s = a.smoothing
         if a.policy_class == "table":
             self.mean.mul_(1 - s).add_(s * elite.mean(0)).clamp_(a.p_min, 1 - a.p_min)
@@ -286,13 +296,39 @@ class SearchLearner(Learner):
             self.std.mul_(1 - s).add_(s * elite.std(0, unbiased=False)).clamp_(min=a.sigma_min)
         self.generation += 1
         self._sync_greedy()
+        return self._stats(rec, key, moved=int(order.numel()))
+
+    @staticmethod
+    def _stats(rec: dict[str, Tensor], key: Tensor, moved: int) -> dict[str, float]:
         trips = rec["trips"].to(torch.float64).mean(1)
         safe = rec["failed"].sum(1) == 0
-        return {"train/mode_trips": float(trips[0]),
+        return {"train/mode_trips": float(trips[0]), "train/elite_used": moved,
                 "train/best_trips": float(trips[key.argmax()]),
                 "train/safe_share": float(safe.float().mean()),
                 "train/mode_failures": float(rec["failed"][0].float().mean()),
                 "frames": int(rec["trips"].sum())}
+
+
+def clone_policy(policy: Policy, sizes: list[tuple[int, int]], seed: int,
+                 n_states: int = 20_000, steps: int = 1500) -> Tensor:
+    """Flat weights of an ``mlp`` member that imitates ``policy`` (behaviour cloning on
+    random ``partial`` states, logistic loss): the Gaussian search's starting mean."""
+    g = torch.Generator().manual_seed(seed)
+    soc = 0.3 + 0.7 * torch.rand(n_states, 2, generator=g)
+    busy = torch.rand(n_states, generator=g) < 0.5
+    tc = torch.where(busy, torch.rand(n_states, generator=g).clamp(min=1 / 31), 0.0)
+    obs = torch.cat([soc, tc[:, None]], dim=1)
+    with torch.no_grad():
+        target = policy(obs).float()
+    theta = (0.3 * torch.randn(mlp_n_params(sizes), generator=g)).requires_grad_(True)
+    opt = torch.optim.Adam([theta], lr=0.02)
+    for _ in range(steps):
+        logits = mlp_logits(theta[None], obs[None], sizes)[0]
+        loss = torch.nn.functional.binary_cross_entropy_with_logits(logits, target)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    return theta.detach()
 
 
 def cell_centres() -> Tensor:

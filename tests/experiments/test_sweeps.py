@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import csv
 import json
+import os
+import shutil
 import subprocess
 import sys
+import tempfile
 
 import pytest
 
@@ -83,3 +86,28 @@ def test_miniature_sweep_through_submitit(tmp_path):
     rows = json.loads((out / "pc" / "p_c=0.8.json").read_text())["rows"]
     assert {row["policy"] for row in rows} == {"rule", "heuristic"}
     assert list((tmp_path / "multirun" / ".submitit").iterdir())  # submitit's job folders
+
+
+@pytest.mark.slow
+def test_miniature_sweep_through_ray(tmp_path):
+    """The same sweep as Ray tasks on a local Ray instance that the launcher starts
+    (``hydra/launcher=ray``; ``ray_cluster`` connects to a running cluster instead)."""
+    pytest.importorskip("hydra_plugins.hydra_ray_launcher")
+    out = tmp_path / "sweeps"
+    cmd = [sys.executable, "-m", "fleet_torchrl.sweeps", "-m", "+experiment=sweep_pc",
+           "hydra/launcher=ray", "+hydra.launcher.ray.init.num_cpus=2",
+           "+hydra.launcher.ray.init.include_dashboard=false",
+           "sweep.value=0.4,0.8", "eval.n_sims=8", "eval.ticks=300",
+           "sweep.policies=[rule,heuristic]", "sweep.search=false", f"sweep.out={out}",
+           f"hydra.sweep.dir={tmp_path / 'multirun'}"]
+    ray_tmp = tempfile.mkdtemp(prefix="ray", dir="/tmp")  # Ray's socket paths must be short
+    env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0", "RAY_TMPDIR": ray_tmp}
+    try:
+        r = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env)
+    finally:
+        shutil.rmtree(ray_tmp, ignore_errors=True)
+    assert r.returncode == 0, (r.stdout + r.stderr)[-3000:]
+    assert "Ray Launcher is launching 2 jobs" in r.stdout + r.stderr
+    assert sorted(p.name for p in (out / "pc").glob("*.json")) == ["p_c=0.4.json", "p_c=0.8.json"]
+    rows = json.loads((out / "pc" / "p_c=0.4.json").read_text())["rows"]
+    assert {row["policy"] for row in rows} == {"rule", "heuristic"}
