@@ -83,8 +83,8 @@ evaluate: $(STAMP)  ## evaluate a policy (MODEL §4); overrides in ARGS
 bench: $(STAMP)  ## simulator, evaluation, environment and training throughput (docs/BENCHMARKS.md)
 	$(PY) -m fleet_torchrl.bench $(ARGS)
 
-tensorboard: $(STAMP)  ## open TensorBoard on the training runs
-	$(VENV)/bin/tensorboard --logdir_spec outputs:outputs,multirun:multirun
+tensorboard: $(STAMP)  ## TensorBoard on the training runs, e.g. ARGS="--port 6007 --bind_all"
+	$(VENV)/bin/tensorboard --logdir_spec outputs:outputs,multirun:multirun $(ARGS)
 
 clean:  ## remove Hydra outputs and sweeps (keeps .venv and results/)
 	rm -rf outputs multirun/*/ .pytest_cache .ruff_cache

@@ -30,6 +30,8 @@ class TableConfig:
         "dqn_partial_throughput": ["agent=dqn", "state=partial", "mdp.reward=throughput",
                                    "agent.reward_scale=1.0", "train.max_episodes=30720"],
         "search": ["agent=search"],
+        "search_mlp": ["agent=search", "agent.policy_class=mlp", "agent.sigma_init=0.3",
+                       "agent.sigma_min=0.01", "agent.sites=128"],
     })
 
     def validate(self, path: str = "table") -> TableConfig:
