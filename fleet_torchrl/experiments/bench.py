@@ -111,7 +111,8 @@ def bench_protocol(repeats: int, n_sims: int = 1000, ticks: int = 10_000) -> dic
 
 
 LEARNERS = {"tabular": ["agent=tabular"], "dqn_partial": ["agent=dqn", "state=partial"],
-            "dqn_all": ["agent=dqn", "state=all"]}
+            "dqn_all": ["agent=dqn", "state=all"], "search": ["agent=search"],
+            "search_mlp": ["agent=search", "agent.policy_class=mlp"]}
 
 
 def bench_training(rounds: int = 4, device: str = "cpu") -> dict[str, dict[str, float]]:
