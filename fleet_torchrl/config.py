@@ -149,7 +149,7 @@ def one_line(exc: BaseException) -> str:
         if head and head[-1].startswith("Available options"):
             head[-1] = "; " + head[-1].rstrip(":").replace("Available options", "allowed")
             options.append(ln)
-        elif options and not ln.startswith("base_"):
+        elif options:
             options.append(ln)
         else:
             head.append(ln)

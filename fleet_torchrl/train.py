@@ -4,10 +4,11 @@
     python -m fleet_torchrl.train agent=dqn state=partial
     python -m fleet_torchrl.train agent=dqn state=all network.width=128 train.max_episodes=4000
 
-Logs to TensorBoard under the Hydra run directory (``outputs/train/<time>/tb``), keeps the best
-policy by periodic evaluation in ``results/policies/<name>/policy.pt`` (or ``train.out_dir``)
-and checkpoints to ``<run dir>/checkpoint.ckpt``. A killed run continues with
-``resume=true hydra.run.dir=<its run dir>``.
+Logs to TensorBoard under the Hydra run directory (``outputs/train/<time>/tb``) and to its
+``train.log``, keeps the best policy by periodic evaluation in ``<run dir>/policy.pt``,
+checkpoints to ``<run dir>/checkpoint.ckpt``, and at a successful end publishes the policy
+with its summary to ``results/policies/<name>/`` (or ``train.out_dir``). A killed run
+continues with ``resume=true hydra.run.dir=<its run dir>``.
 """
 
 from __future__ import annotations

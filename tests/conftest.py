@@ -33,8 +33,9 @@ def make_state():
 
 @pytest.fixture
 def saved_policies(tmp_path):
-    """Untrained saved policies ``tabular`` and ``dqn_partial`` under ``tmp_path/policies``
-    (enough for the plumbing of experiments that load policies by name)."""
+    """Untrained saved policies ``tabular``, ``dqn_partial`` and ``search`` under
+    ``tmp_path/policies`` (enough for the plumbing of experiments that load policies by
+    name)."""
     from fleet_torchrl.agents import save_policy
     from fleet_torchrl.agents.dqn import DQNPolicy, NetworkConfig
     from fleet_torchrl.agents.tabular import TabularQPolicy
@@ -43,4 +44,7 @@ def saved_policies(tmp_path):
     save_policy(root / "tabular" / "policy.pt", TabularQPolicy(), "tabular")
     net = NetworkConfig(width=8, depth=1)
     save_policy(root / "dqn_partial" / "policy.pt", DQNPolicy(net, 3, "partial"), "dqn")
+    from fleet_torchrl.agents.search import SearchPolicy
+
+    save_policy(root / "search" / "policy.pt", SearchPolicy("table"), "search")
     return root

@@ -79,6 +79,8 @@ def test_site_variants():
     ("agent=search agent.init=random", "agent.init"),
     ("agent=search agent.p_min=0.6", "agent.p_min"),
     ("agent=search agent.smoothing=0", "agent.smoothing"),
+    ("agent=search agent.p_min=0.5", "agent.p_min"),
+    ("sweep.search_overrides=['agent=dqn']", "sweep.search_overrides[0]"),
 ])
 def test_bad_values_name_the_field(override, field):
     with pytest.raises(ConfigError) as e:
@@ -115,6 +117,8 @@ def test_unknown_keys_added_with_plus_are_rejected():
                   "five_vehicles, no_closure, slow_charger"),
     ("site.n_vehicles=abc", "error: Error merging override site.n_vehicles=abc: Value 'abc' of "
                             "type 'str' could not be converted to Integer"),
+    ("agent=nope", "error: In 'config': Could not find 'agent/nope'; allowed in 'agent': dqn, "
+                   "heuristic, rule, search, tabular"),
     ("+site.pc=0.5", "error: site.pc is not a setting of site (allowed: closed_node, e_charge, "
                      "e_idle, e_move, leave_when_full, n_nodes, n_vehicles, name, p_c, soc_low, "
                      "t_c, xi)"),
@@ -124,3 +128,24 @@ def test_hydra_level_errors_are_one_line_with_exit_code_2(override, expected):
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 2, r.stderr
     assert r.stderr.strip().splitlines() == [expected]
+
+
+def test_the_table_schema_default_is_the_yaml_default():
+    from fleet_torchrl.experiments.config import TableConfig
+
+    assert TableConfig().train == compose_config([]).table.train
+
+
+def test_run_names_tell_runs_apart():
+    from fleet_torchrl.agents import get_agent
+
+    def name(*over):
+        cfg = compose_config(list(over))
+        return get_agent(cfg.agent.name).run_name(cfg)
+
+    assert name("agent=tabular") == "tabular"
+    assert name("agent=tabular", "mdp.reward=throughput") == "tabular_throughput"
+    assert name("agent=dqn", "state=all") == "dqn_all"
+    assert name("agent=search") == "search"
+    assert name("agent=search", "mdp.reward=throughput") == "search"  # trips either way
+    assert name("agent=search", "agent.policy_class=mlp") == "search_mlp"

@@ -43,6 +43,11 @@ class AgentConfig:
         """The objective this agent's policies are trained for (the table's column)."""
         return mdp.reward
 
+    def run_suffix(self, mdp: Any) -> str:
+        """What a run's policy name adds to the agent's: the objective unless it is the
+        thesis's (``tabular_throughput``)."""
+        return "" if mdp.reward == "thesis" else f"_{mdp.reward}"
+
     def training_rounds(self, train: Any) -> int:
         """Rounds of the training loop: ``train.max_episodes`` episodes, one per site and round
         (a learner with another budget overrides this)."""

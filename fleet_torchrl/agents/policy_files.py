@@ -8,6 +8,8 @@ through the registry.
 
 from __future__ import annotations
 
+import hashlib
+import io
 from pathlib import Path
 from typing import Any
 
@@ -20,9 +22,8 @@ FORMAT = "fleet_torchrl.policy/2"
 POLICY_FILE = "policy.pt"
 
 
-def save_policy(path: str | Path, policy: Policy, kind: str,
-                meta: dict[str, Any] | None = None) -> Path:
-    """Write ``policy`` (of registry agent ``kind``) to ``path`` atomically."""
+def policy_bytes(policy: Policy, kind: str, meta: dict[str, Any] | None = None) -> bytes:
+    """The bytes of the policy file of ``policy`` (of registry agent ``kind``)."""
     bundle = {
         "format": FORMAT,
         "kind": kind,
@@ -31,7 +32,18 @@ def save_policy(path: str | Path, policy: Policy, kind: str,
         "state_dict": {k: v.detach().cpu() for k, v in policy.state_dict().items()},
         "meta": meta or {},
     }
-    return atomic_write(path, lambda f: torch.save(bundle, f), mode="wb")
+    buf = io.BytesIO()
+    torch.save(bundle, buf)
+    return buf.getvalue()
+
+
+def save_policy(path: str | Path, policy: Policy, kind: str,
+                meta: dict[str, Any] | None = None) -> tuple[Path, str]:
+    """Write ``policy`` (of registry agent ``kind``) to ``path`` atomically; returns the path
+    and the SHA-256 of the bytes written."""
+    data = policy_bytes(policy, kind, meta)
+    out = atomic_write(path, lambda f: f.write(data), mode="wb")
+    return out, hashlib.sha256(data).hexdigest()
 
 
 def read_policy_file(path: str | Path) -> tuple[Path, dict[str, Any]]:

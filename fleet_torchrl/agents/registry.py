@@ -48,11 +48,12 @@ class AgentSpec:
 
     def run_name(self, cfg: Config) -> str:
         """Name of the policy a run of this agent makes (``tabular``, ``dqn_partial``,
-        ``dqn_all_throughput``, ...)."""
+        ``dqn_all_throughput``, ``search_mlp``, ...)."""
         name = self.name if self.states is not None and len(self.states) == 1 \
             else f"{self.name}_{cfg.state.name}"
-        # the objective is part of the name, as in make table: tabular vs tabular_throughput
-        return name if cfg.mdp.reward == "thesis" else f"{name}_{cfg.mdp.reward}"
+        # what else tells two runs apart, as in make table: tabular vs tabular_throughput,
+        # search vs search_mlp
+        return name + cfg.agent.run_suffix(cfg.mdp)
 
 
 AGENTS: dict[str, AgentSpec] = {}

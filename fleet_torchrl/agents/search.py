@@ -69,7 +69,7 @@ class SearchAgentConfig(AgentConfig):
     generations: int = 100  # rounds of the training loop
     smoothing: float = 0.5  # step towards the elite: new = (1 - s) old + s elite
     elitist: bool = False  # true: only elite candidates that beat the mode (candidate 0) count
-    init: str = "heuristic"  # table: starting policy, rule | heuristic | uniform
+    init: str = "heuristic"  # starting policy (table: its actions, mlp: a clone of it)
     p_min: float = 0.15  # table: charge probabilities stay in [p_min, 1 - p_min]
     hidden: int = 16  # mlp: units per hidden layer
     depth: int = 2  # mlp: hidden layers
@@ -88,7 +88,7 @@ class SearchAgentConfig(AgentConfig):
         check_range(f"{path}.generations", self.generations, 1, 1_000_000)
         check_range(f"{path}.smoothing", self.smoothing, 1e-6, 1.0, allowed="(0, 1]")
         check_choice(f"{path}.init", self.init, INITS)
-        check_range(f"{path}.p_min", self.p_min, 0.0, 0.5)
+        check_range(f"{path}.p_min", self.p_min, 0.0, 0.49, allowed="[0, 0.49]")
         check_range(f"{path}.hidden", self.hidden, 1, 4096)
         check_range(f"{path}.depth", self.depth, 0, 16)
         check_range(f"{path}.sigma_init", self.sigma_init, 1e-6, 100.0)
@@ -102,6 +102,9 @@ class SearchAgentConfig(AgentConfig):
 
     def objective(self, mdp: Any) -> str:
         return "trips"  # the search maximises mean trips directly, whatever mdp.reward says
+
+    def run_suffix(self, mdp: Any) -> str:
+        return "_mlp" if self.policy_class == "mlp" else ""
 
 
 # ------------------------------------------------------------------------ the policy class
@@ -232,7 +235,7 @@ class SearchLearner(Learner):
         else:
             n = self.greedy.theta.numel()
             start = torch.zeros(n) if init_policy is None else clone_policy(
-                init_policy, self.sizes, seed)
+                init_policy, self.sizes, seed, site_cfg)
             self.register_buffer("mean", start)
             self.register_buffer("std", torch.full((n,), agent.sigma_init))
         self.register_buffer("generation", torch.zeros((), dtype=torch.int64))
@@ -265,10 +268,12 @@ class SearchLearner(Learner):
         """``population`` candidates ``[K, P]``; candidate 0 is the mode."""
         a = self.agent
         if a.policy_class == "table":
-            cand = (torch.rand(a.population, self.mean.numel()) < self.mean).long()
+            cand = (torch.rand(a.population, self.mean.numel(), device=self.mean.device)
+                    < self.mean).long()
             cand[0] = (self.mean > 0.5).long()
         else:
-            cand = self.mean + self.std * torch.randn(a.population, self.mean.numel())
+            cand = self.mean + self.std * torch.randn(a.population, self.mean.numel(),
+                                                      device=self.mean.device)
             cand[0] = self.mean
         return cand
 
@@ -306,17 +311,23 @@ class SearchLearner(Learner):
                 "train/best_trips": float(trips[key.argmax()]),
                 "train/safe_share": float(safe.float().mean()),
                 "train/mode_failures": float(rec["failed"][0].float().mean()),
+                # decisions simulated: every arrival at D (a trip) is one decision
                 "frames": int(rec["trips"].sum())}
 
 
 def clone_policy(policy: Policy, sizes: list[tuple[int, int]], seed: int,
-                 n_states: int = 20_000, steps: int = 1500) -> Tensor:
+                 site_cfg: SiteConfig | None = None, n_states: int = 20_000,
+                 steps: int = 1500) -> Tensor:
     """Flat weights of an ``mlp`` member that imitates ``policy`` (behaviour cloning on
-    random ``partial`` states, logistic loss): the Gaussian search's starting mean."""
+    random ``partial`` states of the site, logistic loss): the Gaussian search's starting
+    mean."""
+    site_cfg = site_cfg or SiteConfig()
     g = torch.Generator().manual_seed(seed)
-    soc = 0.3 + 0.7 * torch.rand(n_states, 2, generator=g)
+    lo = site_cfg.soc_low / 100.0
+    soc = lo + (1.0 - lo) * torch.rand(n_states, 2, generator=g)
     busy = torch.rand(n_states, generator=g) < 0.5
-    tc = torch.where(busy, torch.rand(n_states, generator=g).clamp(min=1 / 31), 0.0)
+    tc = torch.where(busy, torch.rand(n_states, generator=g).clamp(min=1 / (site_cfg.t_c + 1)),
+                     0.0)
     obs = torch.cat([soc, tc[:, None]], dim=1)
     with torch.no_grad():
         target = policy(obs).float()

@@ -6,6 +6,7 @@ evaluate_policy`: the summary, the per-simulation records and the setup.
 
 from __future__ import annotations
 
+import hashlib
 import math
 import os
 from pathlib import Path
@@ -14,7 +15,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from ..utils.runinfo import file_sha256, read_json, write_csv, write_json
+from ..utils.runinfo import csv_text, file_sha256, read_json, write_json, write_text
 
 Z95 = 1.959963984540054
 # two-sided 95 % quantiles of Student's t for 1..10 degrees of freedom
@@ -129,8 +130,9 @@ def save_result(result: dict[str, Any], path: str | Path) -> tuple[Path, Path]:
     if path.suffix != ".json":
         raise ValueError(f"result path must end in .json, got {path}")
     csv_path = path.with_suffix(".csv")
-    write_csv(csv_path, record_rows(result), CSV_FIELDS)
-    write_json(path, {**result, "csv_sha256": file_sha256(csv_path)})
+    text = csv_text(record_rows(result), CSV_FIELDS)
+    write_text(csv_path, text)  # the hash is of what this writer wrote, not read back
+    write_json(path, {**result, "csv_sha256": hashlib.sha256(text.encode()).hexdigest()})
     return path, csv_path
 
 

@@ -132,6 +132,9 @@ def bench_training(rounds: int = 4, device: str = "cpu") -> dict[str, dict[str, 
             t0 = time.perf_counter()
             frames = sum(trainer.play_round()["frames"] for _ in range(rounds))
             dt = time.perf_counter() - t0
+            # the search simulates its own population (population x sites per generation)
+            sites = (cfg.agent.population * cfg.agent.sites
+                     if trainer.learner.steps_per_round == 0 else cfg.agent.num_sites)
             out[name] = {"decisions_per_s": frames / dt, "round_s": dt / rounds,
-                         "sites": cfg.agent.num_sites}
+                         "sites": sites}
     return out

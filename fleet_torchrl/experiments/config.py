@@ -22,17 +22,22 @@ class TableConfig:
     # name -> overrides of its training run (learner, state, objective, budget); the YAML
     # default (conf/config.yaml) lists the thesis and the throughput runs
     train: dict[str, list[str]] = field(default_factory=lambda: {
-        "tabular": ["agent=tabular", "train.max_episodes=12800"],
-        "dqn_partial": ["agent=dqn", "state=partial", "train.max_episodes=30720"],
-        "dqn_all": ["agent=dqn", "state=all", "train.max_episodes=20480"],
+        "tabular": ["agent=tabular", "train.max_episodes=12800", "train.threads=1"],
+        "dqn_partial": ["agent=dqn", "state=partial", "train.max_episodes=30720",
+                        "train.eval_every=4", "train.eval_sims=1000", "train.eval_ticks=5000",
+                        "train.threads=1"],
+        "dqn_all": ["agent=dqn", "state=all", "train.max_episodes=20480", "train.eval_every=4",
+                    "train.eval_sims=1000", "train.eval_ticks=5000", "train.threads=1"],
         "tabular_throughput": ["agent=tabular", "mdp.reward=throughput",
-                               "train.max_episodes=12800"],
+                               "train.max_episodes=12800", "train.threads=1"],
         "dqn_partial_throughput": ["agent=dqn", "state=partial", "mdp.reward=throughput",
-                                   "agent.reward_scale=1.0", "train.max_episodes=30720"],
-        "search": ["agent=search"],
+                                   "agent.reward_scale=1.0", "train.max_episodes=30720",
+                                   "train.eval_every=4", "train.eval_sims=1000",
+                                   "train.eval_ticks=5000", "train.threads=1"],
+        "search": ["agent=search", "train.threads=1"],
         "search_mlp": ["agent=search", "agent.policy_class=mlp", "agent.sigma_init=0.3",
-                       "agent.sigma_min=0.01", "agent.sites=128"],
-    })
+                       "agent.sigma_min=0.01", "agent.sites=128", "train.threads=1"],
+    })  # the same as conf/config.yaml (tests/test_config.py checks)
 
     def validate(self, path: str = "table") -> TableConfig:
         check_range(f"{path}.seeds", self.seeds, 1, 1000)
@@ -59,10 +64,12 @@ class SweepConfig:
     def validate(self, known: tuple[str, ...], path: str = "sweep") -> SweepConfig:
         check_choice(f"{path}.param", self.param, SWEEP_PARAMS)
         for i, o in enumerate(self.search_overrides):
-            if o.split("=", 1)[0].lstrip("+~").split(".")[0] not in ("agent", "train", "seed"):
+            key = o.split("=", 1)[0].lstrip("+~")
+            if key.split(".")[0] not in ("agent", "train", "seed") or key in ("agent",
+                                                                              "agent.name"):
                 raise ConfigError(f"{path}.search_overrides[{i}]={o!r} is invalid: allowed "
-                                  "overrides of agent.*, train.* or seed (the site is the "
-                                  "point's)")
+                                  "overrides of agent.* (the search's settings), train.* or "
+                                  "seed (the site is the point's)")
         for i, name in enumerate(self.policies):
             check_choice(f"{path}.policies[{i}]", name, known)
         return self
@@ -77,7 +84,7 @@ class MapsConfig:
 
     out: str = "results/policy_maps"
     policies: list[str] = field(default_factory=lambda: [
-        "rule", "heuristic", "tabular", "dqn_partial"])
+        "rule", "heuristic", "tabular", "dqn_partial", "search"])
 
     def validate(self, known: tuple[str, ...], path: str = "maps") -> MapsConfig:
         for i, name in enumerate(self.policies):

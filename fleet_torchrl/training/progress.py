@@ -6,12 +6,13 @@ from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
 
-def selection_score(select: str, reward: str, res: dict[str, Any]) -> float:
+def selection_score(select: str, objective: str, res: dict[str, Any]) -> float:
     """What ranks two evaluations with the same failure rate (``train.select``): the mean
-    trips (``trips``), or the score of the objective being learned (``objective``): the
-    thesis reward (``mdp.reward=thesis``) costs queue ticks, so fewer of them win; the
-    throughput reward counts trips, so more of them win."""
-    if select == "objective" and reward == "thesis":
+    trips (``trips``), or the score of the objective being learned (``objective``, the
+    agent's :meth:`~fleet_torchrl.agents.base.AgentConfig.objective`): the thesis reward
+    costs queue ticks, so fewer of them win; the throughput reward and the direct search
+    count trips, so more of them win."""
+    if select == "objective" and objective == "thesis":
         return -float(res["queue_mean"])
     return float(res["trips_mean"])
 
@@ -35,7 +36,7 @@ class Progress:
 
     ``best`` is ``(failure rate, score)`` of the best evaluation so far: a lower failure
     rate wins, then a higher score (the mean trips, or the objective's own score with
-    ``train.select=objective``, see :meth:`Trainer.selection_score`).
+    ``train.select=objective``, see :func:`selection_score`).
     """
 
     round: int = 0

@@ -1,8 +1,9 @@
 """The training loop: one loop for every learner (MODEL §3), with explicit setup stages.
 
-Schedule. Training runs in ``train.max_episodes / agent.num_sites`` *rounds* over a batched
-environment of ``agent.num_sites`` sites (the budget counts one episode per site and round;
-a round starts from fresh resets unless the learner lets episodes run on, see below).
+Schedule. Training runs in ``agent.training_rounds(train)`` *rounds* over a batched
+environment of ``agent.num_sites`` sites: ``train.max_episodes / agent.num_sites`` (the
+budget counts one episode per site and round; a round starts from fresh resets unless the
+learner lets episodes run on, see below), ``agent.generations`` for the direct search.
 A round is ``learner.start_round``, then environment steps (``learner.act`` -> ``env`` ->
 ``learner.observe``), then ``learner.update``:
 
@@ -10,7 +11,9 @@ A round is ``learner.start_round``, then environment steps (``learner.act`` -> `
   a site whose episode is done stops learning, and the round ends when all are done;
 * a learner with ``steps_per_round = n`` (DQN) plays ``n`` steps of all sites, a site whose
   episode ends starting its next one at once (``env.step_and_maybe_reset``, as TorchRL's
-  collectors do).
+  collectors do);
+* a learner with ``steps_per_round = 0`` (the direct search) takes no environment step: its
+  ``update`` simulates what it needs (a generation).
 
 Starting every round from fresh resets makes a round boundary a clean checkpoint: the
 environment's whole state there is its seed and episode counters. A learner with
@@ -23,8 +26,10 @@ no decision state; no learner learns from them.
 
 Every ``eval_every`` rounds the greedy policy is evaluated with the protocol of MODEL §4 on a
 fixed common-random-numbers set (``train.eval_*``), next to the rule on the same set. Policies
-rank by failure rate first, then mean trips; the best policy is saved at once (atomically) and
-training stops after ``patience`` evaluations without improvement. A checkpoint (learner and
+rank by failure rate first, then by :func:`~fleet_torchrl.training.progress.selection_score`
+(``train.select``); the best policy is saved at once (atomically) into the run folder, and
+published with its summary to ``train.out_dir`` only when the run ends (:meth:`Trainer.promote`).
+Training stops after ``patience`` evaluations without improvement. A checkpoint (learner and
 its extra components, best policy, environment counters, RNG states, progress) is written
 atomically every ``checkpoint_every`` rounds and at the end.
 """
@@ -50,7 +55,7 @@ from ..evaluation import evaluate_policy, gain_over
 from ..utils.monitor import Monitor
 from ..utils.numerics import flush_denormals
 from ..utils.plotting import plot_policy_map
-from ..utils.runinfo import file_sha256, run_info, write_json
+from ..utils.runinfo import run_info, write_json
 from .checkpoint import CHECKPOINT, UNREADABLE, checkpoint_mismatch, training_fingerprint
 from .progress import EvalEntry, Progress, selection_score
 
@@ -252,7 +257,7 @@ class Trainer:
         res = evaluate_policy(pol, name=self.name, **self.eval_args)
         gain = gain_over(res, self.rule_eval)["gain_pct"]
         p = self.progress
-        score = selection_score(c.train.select, c.mdp.reward, res)
+        score = selection_score(c.train.select, c.agent.objective(c.mdp), res)
         improved = p.is_better(res["failure_rate"], score)
         if improved:
             p.best, p.best_round, p.evals_since_best = ((res["failure_rate"], score),
@@ -283,12 +288,13 @@ class Trainer:
             plt.close(fig)
         return entry
 
-    def save_best(self, path: Path | None = None) -> Path:
-        """Write the best policy so far (default: into the run's own folder)."""
+    def save_best(self, path: Path | None = None) -> str:
+        """Write the best policy so far (default: into the run's own folder); returns the
+        SHA-256 of the file written."""
         pol = self.best_policy
         pol.encoding = self.cfg.state.name
         return save_policy(path or self.run_dir / POLICY_FILE, pol, self.cfg.agent.name,
-                           meta=run_info(self.cfg, seed=self.cfg.seed))
+                           meta=run_info(self.cfg, seed=self.cfg.seed))[1]
 
     def promote(self, summary: dict[str, Any]) -> dict[str, Any]:
         """At the successful end of a run: publish the best policy to ``out_dir``
@@ -296,8 +302,7 @@ class Trainer:
         atomically; the summary records the policy file's hash, so a reader can tell a
         matching pair (``experiments.table.reusable``) from one left by a killed or a
         concurrent run. While a run trains, ``out_dir`` is never touched."""
-        path = self.save_best(self.out_dir / POLICY_FILE)
-        summary = {**summary, "policy_sha256": file_sha256(path)}
+        summary = {**summary, "policy_sha256": self.save_best(self.out_dir / POLICY_FILE)}
         write_json(self.run_dir / "train_summary.json", summary)
         write_json(self.out_dir / "train_summary.json", summary)
         return summary

@@ -60,17 +60,22 @@ def write_text(path: str | os.PathLike, text: str) -> Path:
     return atomic_write(path, lambda f: f.write(text))
 
 
+def csv_text(rows: list[dict[str, Any]], fields: tuple[str, ...]) -> str:
+    """Rows (dicts) as CSV text with the given columns."""
+    import csv
+    import io
+
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=fields, lineterminator="\n", extrasaction="ignore")
+    w.writeheader()
+    w.writerows(rows)
+    return buf.getvalue()
+
+
 def write_csv(path: str | os.PathLike, rows: list[dict[str, Any]], fields: tuple[str, ...]
               ) -> Path:
     """Rows (dicts) as CSV with the given columns, written atomically."""
-    import csv
-
-    def write(f) -> None:
-        w = csv.DictWriter(f, fieldnames=fields, lineterminator="\n", extrasaction="ignore")
-        w.writeheader()
-        w.writerows(rows)
-
-    return atomic_write(path, write)
+    return write_text(path, csv_text(rows, fields))
 
 
 def read_json(path: str | os.PathLike) -> Any:

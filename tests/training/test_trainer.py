@@ -151,13 +151,17 @@ def test_snapshot_selection_follows_train_select():
     late = {"trips_mean": 349.0, "queue_mean": 8.0, "failure_rate": 0.0}
     unsafe = {"trips_mean": 360.0, "queue_mean": 1.0, "failure_rate": 0.002}
     for select, reward, winner in [("trips", "thesis", early), ("objective", "thesis", late),
-                                   ("objective", "throughput", early)]:
+                                   ("objective", "throughput", early),
+                                   ("objective", "trips", early)]:  # the direct search
         p = Progress()
         for res in (unsafe, early, late):
             score = selection_score(select, reward, res)
             if p.is_better(res["failure_rate"], score):
                 p.best, kept = (res["failure_rate"], score), res
         assert kept is winner, (select, reward)
+    # the search reports "trips" as its objective whatever mdp.reward is
+    search = compose_config(["agent=search"])
+    assert search.agent.objective(search.mdp) == "trips"
 
 
 def test_policy_is_promoted_only_at_a_successful_end(tmp_path):
