@@ -21,6 +21,7 @@
 
 from __future__ import annotations
 
+import math
 import subprocess
 import sys
 import time
@@ -175,9 +176,10 @@ def rows_markdown(rows: list[dict[str, Any]], cfg: Config) -> str:
         per_seed = ", ".join(f"{g:+.2f}" for g in r["gain_per_seed"]) or "-"
         times = [t for t in r["train_time_s"] if t is not None]
         ttime = f"{max(times) / 60:.1f} min max" if times else ("reused" if r["seeds"] else "-")
+        ci = "-" if math.isnan(r["gain_ci95"]) else f"{r['gain_ci95']:.2f}"  # one seed: none
         lines.append(f"| {r['policy']} | {r['objective'] or '-'} | {seeds} | "
                      f"{r['trips_mean']:.2f} | {r['queue_mean']:.2f} | "
-                     f"{r['failure_rate']:.3f} | {r['gain_pct']:+.2f} | {r['gain_ci95']:.2f} | "
+                     f"{r['failure_rate']:.3f} | {r['gain_pct']:+.2f} | {ci} | "
                      f"{per_seed} | {r['gain_vs_heuristic_pct']:+.2f} | {ttime} |")
     lines += ["", "Gain: trips over the rule's mean on the same sites, in %. Baselines: the "
               "paired gain and its 95 % interval over the simulations. Learned rows: the mean "

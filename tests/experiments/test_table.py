@@ -69,3 +69,13 @@ def test_table_end_to_end(tmp_path):
     run(cfg)
     assert (tmp_path / "pol" / "tabular" / "seed0" / "policy.pt").exists()
     assert len(list((tmp_path / "runs").glob("train_tabular_seed0.stale-*"))) == 2
+
+
+def test_a_single_seed_row_has_no_interval():
+    from fleet_torchrl.experiments.table import rows_markdown
+
+    row = {"policy": "x", "objective": "thesis", "seeds": [0], "trips_mean": 1.0,
+           "queue_mean": 1.0, "failure_rate": 0.0, "gain_pct": 1.0, "gain_ci95": float("nan"),
+           "gain_per_seed": [1.0], "gain_vs_heuristic_pct": 0.0, "train_time_s": [10.0]}
+    line = rows_markdown([row], compose_config([])).splitlines()[4]
+    assert "nan" not in line and "| +1.00 | - | +1.00 |" in line
