@@ -68,7 +68,9 @@ def build(results: Path, out: Path) -> str:
                   "| step | wall time | finished (UTC) | exit |", "|---|---:|---|---:|"]
         parts += [f"| `make {k}` | {v['wall_s'] / 60:.1f} min | {v['finished']} | "
                   f"{v['exit_code']} |" for k, v in t.items()]
-        parts.append("")
+        parts += ["", "Each step's last run; a rerun reuses the saved policies and cached "
+                  "searches whose settings match, so it can be much shorter than a run from an "
+                  "empty `results/` (those are in [BENCHMARKS.md](BENCHMARKS.md)).", ""]
 
     parts += ["## Main comparison (MODEL §5 item 1)", ""]
     table = results / "table" / "table.md"
