@@ -160,9 +160,9 @@ class SearchPolicy(Policy):
         return self.charge if self.policy_class == "table" else self.theta
 
     def forward(self, obs: Tensor) -> Tensor:
-        if self.policy_class == "table":
-            return self.charge[state_index(obs)]
-        return (mlp_logits(self.theta[None], obs[None], self.sizes)[0] > 0).long()
+        # a population of one: the same code decides for a saved policy and in the search
+        return population_actions(self.policy_class, self.params()[None], obs,
+                                  getattr(self, "sizes", None))
 
 
 def population_actions(policy_class: str, params: Tensor, obs: Tensor,
@@ -289,18 +289,17 @@ class SearchLearner(Learner):
         order = key.argsort(descending=True, stable=True)[:a.elite]
         if a.elitist:  # only candidates that beat the mode on these sites pull the mean
             order = order[key[order] > key[0]]
-        if order.numel() == 0:
-            self.generation += 1
-            return self._stats(rec, key, moved=0)
-        elite = cand[order].to(self.mean.dtype)
-        s = a.smoothing
-        if a.policy_class == "table":
-            self.mean.mul_(1 - s).add_(s * elite.mean(0)).clamp_(a.p_min, 1 - a.p_min)
-        else:
+        if order.numel():  # (none left: the distribution stays)
+            elite = cand[order].to(self.mean.dtype)
+            s = a.smoothing
             self.mean.mul_(1 - s).add_(s * elite.mean(0))
-            self.std.mul_(1 - s).add_(s * elite.std(0, unbiased=False)).clamp_(min=a.sigma_min)
+            if a.policy_class == "table":
+                self.mean.clamp_(a.p_min, 1 - a.p_min)
+            else:
+                self.std.mul_(1 - s).add_(s * elite.std(0, unbiased=False))
+                self.std.clamp_(min=a.sigma_min)
+            self._sync_greedy()
         self.generation += 1
-        self._sync_greedy()
         return self._stats(rec, key, moved=int(order.numel()))
 
     @staticmethod

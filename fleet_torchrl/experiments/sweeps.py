@@ -36,7 +36,7 @@ from ..config import Config, compose_config
 from ..evaluation import evaluate_with, gain_over
 from ..sim import SiteConfig
 from ..training import Trainer, training_fingerprint
-from ..utils.runinfo import read_json, run_info, to_jsonable, write_json
+from ..utils.runinfo import file_sha256, read_json, run_info, to_jsonable, write_json
 from .table import reusable
 
 POINT_FIELDS = ("param", "value", "policy", "trips_mean", "trips_std", "queue_mean",
@@ -59,7 +59,7 @@ def policy_identity(cfg: Config, name: str) -> str:
     path = saved_policy_path(cfg.table.policies_dir, name)
     if not path.is_file():
         return f"{name}:missing"
-    return f"{name}:{hashlib.sha256(path.read_bytes()).hexdigest()[:16]}"
+    return f"{name}:{file_sha256(path)[:16]}"
 
 
 def search_config(cfg: Config, site: SiteConfig) -> Config:
@@ -71,9 +71,9 @@ def search_config(cfg: Config, site: SiteConfig) -> Config:
     return run_cfg
 
 
-def point_search(cfg: Config, site: SiteConfig, label: str) -> tuple[Policy, dict[str, Any]]:
-    """The point's search policy (trained, or reused when its settings match) and summary."""
-    run_cfg = search_config(cfg, site)
+def point_search(cfg: Config, run_cfg: Config, label: str) -> tuple[Policy, dict[str, Any]]:
+    """The point's search policy (trained with ``run_cfg``, the point's
+    :func:`search_config`, or reused when its settings match) and its summary."""
     out = Path(cfg.sweep.search_dir) / label / digest(training_fingerprint(run_cfg))
     run_cfg.train.out_dir = str(out)
     if not reusable(out, run_cfg):
@@ -84,14 +84,14 @@ def point_search(cfg: Config, site: SiteConfig, label: str) -> tuple[Policy, dic
     return load_policy_file(out), read_json(out / "train_summary.json")
 
 
-def point_key(cfg: Config, site: SiteConfig) -> str:
+def point_key(cfg: Config, site: SiteConfig, search_cfg: Config | None) -> str:
     """Everything a point's result depends on, hashed (the sweep cache's key)."""
     e = cfg.eval
     parts: dict[str, Any] = {
         "site": site, "eval": {"n_sims": e.n_sims, "ticks": e.ticks, "seed": e.seed},
         "policies": [policy_identity(cfg, n) for n in cfg.sweep.policies]}
-    if cfg.sweep.search:
-        parts["search"] = training_fingerprint(search_config(cfg, site))
+    if search_cfg is not None:
+        parts["search"] = training_fingerprint(search_cfg)
     return digest(parts)
 
 
@@ -111,7 +111,8 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
     value = point_value(param, cfg.sweep.value)
     label = f"{param}={value}"
     site = replace(cfg.site, **{param: value}, name=label).validate()
-    key = point_key(cfg, site)
+    search_cfg = search_config(cfg, site) if cfg.sweep.search else None
+    key = point_key(cfg, site, search_cfg)
     if path.exists():
         try:
             old = read_json(path).get("key")
@@ -124,8 +125,8 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
     e = cfg.eval
     policies = load_policies(cfg, cfg.sweep.policies)
     search_summary = None
-    if cfg.sweep.search:
-        policies[OPTIMUM], search_summary = point_search(cfg, site, label)
+    if search_cfg is not None:
+        policies[OPTIMUM], search_summary = point_search(cfg, search_cfg, label)
     results = {name: evaluate_with(pol, site, e, name=name) for name, pol in policies.items()}
     rule = results.get("rule")
     rows = []
