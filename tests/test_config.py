@@ -114,14 +114,14 @@ def test_unknown_keys_added_with_plus_are_rejected():
 
 @pytest.mark.parametrize("override, expected", [
     ("site=nope", "error: In 'config': Could not find 'site/nope'; allowed in 'site': default, "
-                  "five_vehicles, no_closure, slow_charger"),
+                  "five_vehicles, no_closure, randomized, slow_charger"),
     ("site.n_vehicles=abc", "error: Error merging override site.n_vehicles=abc: Value 'abc' of "
                             "type 'str' could not be converted to Integer"),
     ("agent=nope", "error: In 'config': Could not find 'agent/nope'; allowed in 'agent': dqn, "
                    "heuristic, rule, search, tabular"),
     ("+site.pc=0.5", "error: site.pc is not a setting of site (allowed: closed_node, e_charge, "
-                     "e_idle, e_move, leave_when_full, n_nodes, n_vehicles, name, p_c, soc_low, "
-                     "t_c, xi)"),
+                     "e_idle, e_move, leave_when_full, n_nodes, n_vehicles, name, p_c, ranges, "
+                     "soc_low, t_c, xi)"),
 ])
 def test_hydra_level_errors_are_one_line_with_exit_code_2(override, expected):
     r = subprocess.run([sys.executable, "-m", "fleet_torchrl.evaluate", override],

@@ -1,12 +1,17 @@
 """State encodings (MODEL §2): what an agent observes when a vehicle is at ``D``.
 
-Features are normalised to [0, 1] (soc / 100) so that one network setting fits every site.
-In both encodings feature 0 is the soc of the vehicle at ``D``, which lets the rule-based
-benchmark read either of them.
+Features are normalised to [0, 1] so that they mean the same on every site: soc / 100, the
+charger's remaining time as a share of the site's own ``T_C`` (per site on a site
+distribution), node positions as slots of the site's own ``N_N`` nodes. In both encodings
+feature 0 is the soc of the vehicle at ``D``, which lets the rule-based benchmark read either
+of them. Parked vehicles (the fleet a site of a distribution does not have) are full and on
+no node, so they change no feature.
 
 * ``partial`` (3): ``soc_D``; lowest soc among vehicles neither at ``D`` nor at ``C`` (100 if
   none); ``TC`` = 0 if ``C`` is empty, else ``(ticks left of its occupant + 1) / (T_C + 1)``.
 * ``all`` (``N_N + 1``): the soc on every node (0 if empty), then ``TC``.
+* ``partial_site`` (6): ``partial``, then the site's own ``N_V / N_N``, ``p_c`` and
+  ``T_C / (T_C + N_N)`` (constant on one site; per site on a site distribution).
 
 Add an encoding by subclassing :class:`Encoding`, registering it in :data:`ENCODINGS` (config
 validation reads this registry) and adding a ``fleet_torchrl/conf/state/<name>.yaml``.
@@ -34,6 +39,8 @@ class Encoding:
 
 def charger_time(site: Site, s: SiteState) -> Tensor:
     """``TC`` of MODEL §2 for every site: ``[B]`` float32."""
+    if s.params is not None:
+        return _charger_ticks(s).to(torch.float32) / (s.params.t_c + 1).to(torch.float32)
     return _charger_ticks(s).to(torch.float32) / (site.t_c + 1)
 
 
@@ -58,6 +65,10 @@ class Partial(Encoding):
         soc_d = (soc * (s.pos == D)).sum(0)
         others = torch.where(s.pos > C, soc, 100.0).amin(0)  # neither D (0) nor C (1)
         raw = torch.stack((soc_d, others, _charger_ticks(s).to(torch.float32)), dim=1)
+        if s.params is not None:  # each site's own 1 / (T_C + 1), as float32 of the double
+            inv = (1.0 / (s.params.t_c.double() + 1.0)).float()
+            scale = torch.stack((torch.full_like(inv, 0.01), torch.full_like(inv, 0.01), inv), 1)
+            return raw * scale
         return raw * _partial_scale(site.t_c, soc.device)
 
 
@@ -75,7 +86,33 @@ class All(Encoding):
         return out.T.contiguous()
 
 
-ENCODINGS: dict[str, Encoding] = {"partial": Partial(), "all": All()}
+class PartialSite(Encoding):
+    """``partial`` plus three features of the site itself, each in [0, 1] and comparable
+    across sites: fleet density ``N_V / N_N``, the closure probability ``p_c``, and the
+    charge's share of a charge-and-lap cycle ``T_C / (T_C + N_N)`` (a lap is at least
+    ``N_N`` ticks). On a site distribution they are each site's own draws: a policy that
+    reads them can act differently on a crowded or a slow-charging site (the generalist)."""
+
+    name = "partial_site"
+
+    def size(self, site: Site) -> int:
+        return 6
+
+    def __call__(self, site: Site, s: SiteState) -> Tensor:
+        base = ENCODINGS["partial"](site, s)
+        b, n = s.pos.shape[1], float(site.n_nodes)
+        if s.params is not None:
+            n_v = s.params.n_vehicles.to(torch.float32)
+            p_c = s.params.p_c.to(torch.float32)
+            t_c = s.params.t_c.to(torch.float32)
+        else:
+            n_v, p_c, t_c = (torch.full((b,), float(x), device=s.pos.device)
+                             for x in (site.n_vehicles, site.p_c, site.t_c))
+        return torch.cat((base, torch.stack((n_v / n, p_c, t_c / (t_c + n)), dim=1)), dim=1)
+
+
+ENCODINGS: dict[str, Encoding] = {"partial": Partial(), "all": All(),
+                                  "partial_site": PartialSite()}
 
 
 def get_encoding(name: str) -> Encoding:

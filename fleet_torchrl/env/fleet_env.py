@@ -191,10 +191,15 @@ class FleetChargingEnv(EnvBase):
     # ------------------------------------------------------------------ checkpoints
     _DYNAMIC = ("pos", "soc", "left", "charge", "tick")
 
+    _PARAMS = ("n_vehicles", "t_c", "gain", "closure", "p_c")
+
     def state_dict(self, *args, **kwargs):
         sd = super().state_dict(*args, **kwargs)
         for name in self._DYNAMIC:
             sd[f"site.{name}"] = getattr(self.state, name).clone()
+        if self.state.params is not None:  # the drawn parameters of the sites in flight
+            for name in self._PARAMS:
+                sd[f"site.params.{name}"] = getattr(self.state.params, name).clone()
         sd.update({"site.hash": self._hash.clone(), "site.trips": self._trips.clone(),
                    "site.queue": self._queue.clone(),
                    "seed": torch.tensor(self._seed, dtype=torch.int64)})
@@ -205,6 +210,10 @@ class FleetChargingEnv(EnvBase):
         dev = self.device
         for name in self._DYNAMIC:
             setattr(self.state, name, state_dict.pop(f"site.{name}").to(dev).clone())
+        if self.state.params is not None:
+            for name in self._PARAMS:
+                setattr(self.state.params, name,
+                        state_dict.pop(f"site.params.{name}").to(dev).clone())
         self._hash = state_dict.pop("site.hash").to(dev).clone()
         self._trips = state_dict.pop("site.trips").to(dev).clone()
         self._queue = state_dict.pop("site.queue").to(dev).clone()
@@ -219,7 +228,7 @@ class FleetChargingEnv(EnvBase):
     def _advance(self, active: torch.Tensor) -> TickOutcome:
         """One tick of the ``active`` sites with their closure draws; updates the counters."""
         s = self.state
-        out = self.site.tick(s, self.site.closures_hashed(self._hash, s.tick), active)
+        out = self.site.tick(s, self.site.closures_hashed(self._hash, s.tick, s.params), active)
         self._trips += out.arrived
         self._queue += out.queue
         return out

@@ -4,9 +4,37 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ..utils.checks import check_range
+from ..utils.checks import ConfigError, check_range
 
 MAX_NODES = 62  # occupancy of a site is one 64-bit mask
+
+
+@dataclass
+class SiteRanges:
+    """A distribution of sites (MODEL §1.5): each parameter given as ``[low, high]`` is drawn
+    per site, uniformly (integers: every value of the range equally likely), as a pure
+    function of ``(seed, site index)``; a parameter left ``None`` keeps the site's value."""
+
+    n_vehicles: list[int] | None = None  # N_V, integers in [1, n_nodes - 2]
+    p_c: list[float] | None = None  # closure probability in [0, 1]
+    t_c: list[int] | None = None  # T_C, integers >= 1
+
+    def validate(self, site: SiteConfig, path: str = "site.ranges") -> SiteRanges:
+        bounds = {"n_vehicles": (1, site.n_nodes - 2), "p_c": (0.0, 1.0), "t_c": (1, 100_000)}
+        for name, (lo, hi) in bounds.items():
+            r = getattr(self, name)
+            if r is None:
+                continue
+            if len(r) != 2 or r[0] > r[1]:
+                raise ConfigError(f"{path}.{name}={list(r)} is invalid: allowed [low, high] "
+                                  "with low <= high, or null (the site's own value)")
+            for k, v in enumerate(r):
+                check_range(f"{path}.{name}[{k}]", v, lo, hi)
+        return self
+
+    def varied(self) -> list[str]:
+        """The names of the parameters that are drawn."""
+        return [n for n in ("n_vehicles", "p_c", "t_c") if getattr(self, n) is not None]
 
 
 @dataclass
@@ -25,6 +53,17 @@ class SiteConfig:
     closed_node: int = 9  # X, a road node
     xi: float = 10.0  # initial soc ~ U[soc_low + xi, 100]
     leave_when_full: bool = True  # a charging vehicle that reaches soc 100 stops charging
+    ranges: SiteRanges | None = None  # a site distribution (site=randomized); None = one site
+
+    @property
+    def max_vehicles(self) -> int:
+        """Vehicles per site in the state tensors: ``n_vehicles``, or the top of its range."""
+        r = self.ranges
+        return r.n_vehicles[1] if r is not None and r.n_vehicles is not None else self.n_vehicles
+
+    @property
+    def randomized(self) -> bool:
+        return self.ranges is not None and bool(self.ranges.varied())
 
     def validate(self, path: str = "site") -> SiteConfig:
         """Raise :class:`~fleet_torchrl.utils.checks.ConfigError` naming the first bad field."""
@@ -43,4 +82,6 @@ class SiteConfig:
         check_range(f"{path}.e_charge", self.e_charge, 0.0, 100.0)
         check_range(f"{path}.closed_node", self.closed_node, 4, self.n_nodes - 1,
                     allowed=f"a road node in [4, n_nodes - 1 = {self.n_nodes - 1}]")
+        if self.ranges is not None:
+            self.ranges.validate(self, f"{path}.ranges")
         return self

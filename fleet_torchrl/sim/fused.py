@@ -62,7 +62,7 @@ static inline uint64_t mix32(uint64_t x) {
 #define MAXV 64
 
 typedef struct {
-    int64_t n_nodes, closed_bit, closures_on, t_c, lwf, stop_on_arrival;
+    int64_t stride, closed_bit, closures_on, t_c, lwf, stop_on_arrival;
     uint64_t threshold;
     const int64_t *succ, *check;
     float dtab[3], soc_low, p_f, p_q, rho, gamma_tick;
@@ -90,7 +90,7 @@ static inline __attribute__((always_inline)) void run_site(
             const uint64_t ht = mix32((((uint64_t)t) & 0xFFFFFFFFull) ^ 0x9E3779B9ull);
             occ |= (mix32(hs ^ ht) < P->threshold) ? P->closed_bit : 0;
         }
-        const int64_t off = ch ? P->n_nodes : 0;
+        const int64_t off = ch ? P->stride : 0;
         int into_c = 0;
         arrived = 0;
         failed = 0;
@@ -137,10 +137,12 @@ static inline __attribute__((always_inline)) void run_site(
 }
 
 /* Advance every active site until an arrival at D, a failure or its tick limit (at least
-   one tick). State arrays are [V, B] (vehicle-major) and [B]; outputs are [B]. Returns the
+   one tick). State arrays are [V, B] (vehicle-major) and [B]; outputs are [B]. With
+   site_nv non-NULL every site has its own fleet size (its first site_nv[b] vehicles; the
+   others are parked and untouched), closure threshold, T_C and charging gain. Returns the
    total number of site-ticks run. */
 int64_t fleet_advance(
-    int64_t nb, int64_t nv, int64_t n_nodes,
+    int64_t nb, int64_t nv, int64_t stride,
     int64_t *pos, float *soc, int64_t *left, uint8_t *charge, int64_t *tick,
     const int64_t *site_hash, const int64_t *limit, int64_t limit_stride,
     const uint8_t *active, const int64_t *succ, const int64_t *check,
@@ -148,11 +150,13 @@ int64_t fleet_advance(
     float d_idle, float d_move, float d_charge, float soc_low, int64_t t_c,
     int64_t leave_when_full, int64_t stop_on_arrival,
     float p_f, float p_q, float rho, float gamma_tick,
+    const int64_t *site_nv, const int64_t *site_thr, const int64_t *site_tc,
+    const float *site_gain,
     int64_t *out_ticks, int64_t *out_trips, int64_t *out_queue,
     uint8_t *out_arrived, uint8_t *out_failed, float *out_cost, float *out_disc)
 {
     params_t P;
-    P.n_nodes = n_nodes; P.closed_bit = closed_bit; P.closures_on = closures_on != 0;
+    P.stride = stride; P.closed_bit = closed_bit; P.closures_on = closures_on != 0;
     P.t_c = t_c; P.lwf = leave_when_full != 0; P.stop_on_arrival = stop_on_arrival != 0;
     P.threshold = threshold; P.succ = succ; P.check = check;
     P.dtab[0] = d_idle; P.dtab[1] = d_move; P.dtab[2] = d_charge;
@@ -164,29 +168,38 @@ int64_t fleet_advance(
             out_arrived[b] = 0; out_failed[b] = 0; out_cost[b] = 0.0f; out_disc[b] = 0.0f;
             continue;
         }
+        params_t Q = P;
+        int64_t nvb = nv;
+        if (site_nv) {  /* a site of a distribution: its own parameters */
+            nvb = site_nv[b];
+            Q.threshold = (uint64_t)site_thr[b];
+            Q.closures_on = site_thr[b] != 0;
+            Q.t_c = site_tc[b];
+            Q.dtab[2] = site_gain[b];
+        }
         int64_t p[MAXV], lf[MAXV];
         float e[MAXV];
-        for (int64_t v = 0; v < nv; ++v) {
+        for (int64_t v = 0; v < nvb; ++v) {
             p[v] = pos[v * nb + b]; lf[v] = left[v * nb + b]; e[v] = soc[v * nb + b];
         }
         int ch = charge[b] != 0;
         int64_t t = tick[b];
         const int64_t lim = limit[b * limit_stride];
         const uint64_t hs = (uint64_t)site_hash[b] & 0xFFFFFFFFull;
-#define RUN(NV) run_site(&P, NV, p, lf, e, &ch, &t, lim, hs, out_ticks + b, out_trips + b, \
+#define RUN(NV) run_site(&Q, NV, p, lf, e, &ch, &t, lim, hs, out_ticks + b, out_trips + b, \
                          out_queue + b, out_arrived + b, out_failed + b, out_cost + b, \
                          out_disc + b)
-        switch (nv) {  /* constant fleet sizes unroll the vehicle loops */
+        switch (nvb) {  /* constant fleet sizes unroll the vehicle loops */
             case 1: RUN(1); break;
             case 2: RUN(2); break;
             case 3: RUN(3); break;
             case 4: RUN(4); break;
             case 5: RUN(5); break;
             case 6: RUN(6); break;
-            default: RUN(nv); break;
+            default: RUN(nvb); break;
         }
 #undef RUN
-        for (int64_t v = 0; v < nv; ++v) {
+        for (int64_t v = 0; v < nvb; ++v) {
             pos[v * nb + b] = p[v]; left[v * nb + b] = lf[v]; soc[v * nb + b] = e[v];
         }
         charge[b] = (uint8_t)ch;
@@ -276,7 +289,7 @@ def load() -> ctypes.CDLL:
             i64, ptr, f32 = ctypes.c_int64, ctypes.c_void_p, ctypes.c_float
             fn.argtypes = ([i64] * 3 + [ptr] * 5 + [ptr, ptr, i64] + [ptr] * 3
                            + [i64, i64, ctypes.c_uint64] + [f32] * 4 + [i64] * 3 + [f32] * 4
-                           + [ptr] * 7)
+                           + [ptr] * 4 + [ptr] * 7)
             fn.restype = i64
             _lib = lib
     return _lib
@@ -347,7 +360,7 @@ class _Prepared:
         d_idle, d_move, d_charge, _ = site._delta.tolist()
         self.succ = site._succ.cpu().contiguous()
         self.check = site._check.cpu().contiguous()
-        self.head = (site.n_nodes,)
+        self.head = (site._stride,)
         self.tables = (self.succ.data_ptr(), self.check.data_ptr(), site._closed_bit,
                        int(closures_on), int(round(site.p_c * (1 << 32))) if closures_on else 0,
                        d_idle, d_move, d_charge, float(site.soc_low), int(site.t_c),
@@ -391,6 +404,17 @@ def advance(site: Site, state: SiteState, site_hash: Tensor, max_ticks: Tensor |
     if active is not None:
         act = active if active.dtype == torch.bool else active.to(torch.bool)
         act = act.contiguous()
+    par = state.params
+    if par is not None:
+        for name, dtype in (("n_vehicles", torch.int64), ("closure", torch.int64),
+                            ("t_c", torch.int64), ("gain", torch.float32)):
+            t = getattr(par, name)
+            if t.dtype != dtype or not t.is_contiguous():
+                setattr(par, name, t.to(dtype).contiguous())
+        per_site = (par.n_vehicles.data_ptr(), par.closure.data_ptr(), par.t_c.data_ptr(),
+                    par.gain.data_ptr())
+    else:
+        per_site = (None, None, None, None)
     ints = torch.empty(3, b, dtype=torch.int64)
     flags = torch.empty(2, b, dtype=torch.bool)
     floats = torch.empty(2, b, dtype=torch.float32)
@@ -401,7 +425,7 @@ def advance(site: Site, state: SiteState, site_hash: Tensor, max_ticks: Tensor |
         state.charge.data_ptr(), state.tick.data_ptr(),
         hsh.data_ptr(), lim.data_ptr(), stride, None if act is None else act.data_ptr(),
         *prep.tables, int(stop_on_arrival),
-        float(p_f), float(p_q), float(rho), float(gamma_tick),
+        float(p_f), float(p_q), float(rho), float(gamma_tick), *per_site,
         ip, ip + 8 * b, ip + 16 * b, fp, fp + b, flp, flp + 4 * b,
     )
     return AdvanceOutcome(ticks=ints[0], trips=ints[1], queue=ints[2], arrived=flags[0],

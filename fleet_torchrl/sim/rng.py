@@ -25,6 +25,7 @@ STREAM_INIT_POS = 2
 STREAM_INIT_SOC = 3
 STREAM_TRAINING = 4  # derives the environment's seed: training never replays evaluation sites
 STREAM_SEARCH = 5  # the sites of each generation of the direct policy search
+STREAM_SITE = 6  # the parameters of each site drawn from a site distribution
 
 
 def training_seed(seed: int) -> int:
@@ -60,6 +61,12 @@ def combine_below(ha: Tensor, hb: Tensor, p: float) -> Tensor:
     integer (``h < p * 2**32``), exact on every device.
     """
     return _mix(ha ^ hb) < int(round(p * (1 << 32)))
+
+
+def mix_below(ha: Tensor, hb: Tensor, threshold: Tensor) -> Tensor:
+    """:func:`combine_below` with an integer threshold per element (broadcast): the draw is
+    ``mix(ha ^ hb) < threshold``, so ``threshold = round(p * 2**32)`` is Bernoulli(p)."""
+    return _mix(ha ^ hb) < threshold
 
 
 def uniform(*coords: Tensor | int, device: torch.device | str | None = None) -> Tensor:

@@ -74,7 +74,7 @@ def _run_eager(decide: Decide, site: Site, idx: Tensor, ticks: int, seed: int, c
     for t0 in range(0, ticks, chunk):
         n_t = min(chunk, ticks - t0)
         ticks_block = torch.arange(t0, t0 + n_t, device=site.device)
-        closed_block = site.closures(seed, idx, ticks_block[:, None])  # [T, B]
+        closed_block = site.closures(seed, idx, ticks_block[:, None], s.params)  # [T, B]
         for t in range(n_t):
             # A failed site keeps being simulated but stops counting: masking three
             # counters is cheaper than freezing the whole state every tick.

@@ -40,6 +40,15 @@ Choices the model leaves open (documented in docs/MODEL.md §1 as well):
   loop decides right after each tick).
 * Sites can be frozen with the ``active`` mask (failed sites in evaluation, sites waiting for
   a decision in the environment): a frozen site's state and counters do not change at all.
+
+A site *distribution* (``SiteConfig.ranges``, MODEL §1.5) gives every site of the batch its own
+``N_V``, ``p_c`` and ``T_C``, drawn with its initial state from ``(seed, site index)``
+(:meth:`Site.draw_params`) and carried in :class:`SiteParams` inside the state. The state
+then holds the largest fleet of the range; the vehicles a site does not have are *parked* on
+an extra node ``N`` that has no occupancy bit, no successor but itself and no energy change,
+so they never block, move, charge, count or fail. Site ``b`` of such a batch is then exactly
+(bit for bit) the single site with ``b``'s parameters under the same seed and index: its
+vehicles are the first ``N_V`` of the same draws.
 """
 
 from __future__ import annotations
@@ -56,6 +65,25 @@ D, C, BYPASS, M = 0, 1, 2, 3
 
 
 @dataclass
+class SiteParams:
+    """Per-site parameters of a batch drawn from a site distribution (``[B]`` tensors)."""
+
+    n_vehicles: Tensor  # int64 N_V (vehicles beyond it are parked)
+    t_c: Tensor  # int64 T_C
+    gain: Tensor  # float32 e_charge / T_C per charging tick
+    closure: Tensor  # int64 X is closed in a tick iff its 32-bit draw is below this
+    p_c: Tensor  # float64 closure probability (closure = round(p_c * 2**32))
+
+    def clone(self) -> SiteParams:
+        return SiteParams(**{f.name: getattr(self, f.name).clone() for f in fields(self)})
+
+    def update_(self, mask: Tensor, other: SiteParams) -> None:
+        for f in fields(self):
+            getattr(self, f.name).copy_(torch.where(mask, getattr(other, f.name),
+                                                    getattr(self, f.name)))
+
+
+@dataclass
 class SiteState:
     """State of ``B`` sites. Tensors are updated in place by :meth:`Site.tick`."""
 
@@ -64,17 +92,24 @@ class SiteState:
     left: Tensor  # [V, B] int64 charging ticks left (0 unless charging at C)
     charge: Tensor  # [B] bool decision of the vehicle at D (True = charge)
     tick: Tensor  # [B] int64 ticks this site has run since it was initialised
+    params: SiteParams | None = None  # per-site parameters (a site distribution), else None
 
     @property
     def batch_size(self) -> int:
         return self.pos.shape[1]
 
     def clone(self) -> SiteState:
-        return SiteState(**{f.name: getattr(self, f.name).clone() for f in fields(self)})
+        return SiteState(**{f.name: getattr(self, f.name).clone() for f in fields(self)
+                            if f.name != "params"},
+                         params=None if self.params is None else self.params.clone())
 
     def update_(self, mask: Tensor, other: SiteState) -> SiteState:
         """Overwrite the sites selected by the ``[B]`` bool ``mask`` with ``other``'s."""
         for f in fields(self):
+            if f.name == "params":
+                if self.params is not None:
+                    self.params.update_(mask, other.params)
+                continue
             mine, theirs = getattr(self, f.name), getattr(other, f.name)
             mine.copy_(torch.where(mask, theirs, mine))  # [B] broadcasts over [V, B]
         return self
@@ -96,17 +131,23 @@ class Site:
         self.cfg = cfg
         self.device = torch.device(device)
         n = self.n_nodes = cfg.n_nodes
-        self.n_vehicles = cfg.n_vehicles
+        self.ranges = cfg.ranges if cfg.randomized else None
+        self.n_vehicles = cfg.max_vehicles  # rows of the state (the top of a drawn range)
         self.t_c = cfg.t_c
         self.p_c = cfg.p_c
         self.soc_low = cfg.soc_low
         self.gain = cfg.e_charge / cfg.t_c
         self.leave_when_full = cfg.leave_when_full
 
-        succ = [0] * n
+        # node n parks the vehicles a site of a distribution does not have; the tables are
+        # indexed by pos + (n + 1) * charge
+        self.park = n
+        self._stride = n + 1
+        succ = [0] * (n + 1)
         succ[D], succ[C], succ[BYPASS] = BYPASS, M, M
         for k in range(M, n):
             succ[k] = (k + 1) % n  # M -> 4, road -> next, N-1 -> D
+        succ[n] = n  # parked stays parked
         succ_charge = list(succ)
         succ_charge[D] = C
         if n > MAX_NODES:
@@ -114,18 +155,19 @@ class Site:
         kw = dict(dtype=torch.int64, device=self.device)
         self._succ = torch.tensor(succ + succ_charge, **kw)
         # bits a vehicle checks before moving: its target's; the vehicle leaving C checks
-        # M and B (merge priority to the bypass)
-        check = [1 << t for t in succ + succ_charge]
-        check[C] = check[n + C] = (1 << M) | (1 << BYPASS)
+        # M and B (merge priority to the bypass); the parking node has no bit
+        check = [1 << t if t < n else 0 for t in succ + succ_charge]
+        check[C] = check[n + 1 + C] = (1 << M) | (1 << BYPASS)
         self._check = torch.tensor(check, **kw)
-        self._bit = torch.tensor([1 << k for k in range(n)], **kw)
+        self._bit = torch.tensor([1 << k for k in range(n)] + [0], **kw)
         self._closed_bit = 1 << cfg.closed_node
         self._delta = torch.tensor([-cfg.e_idle, -cfg.e_move, self.gain, 0.0],
                                    dtype=torch.float32, device=self.device)
         self._start_nodes = torch.tensor([k for k in range(n) if k != C], **kw)
 
     # ------------------------------------------------------------------ random draws
-    def closures(self, seed: int, site_idx: Tensor, ticks: Tensor) -> Tensor:
+    def closures(self, seed: int, site_idx: Tensor, ticks: Tensor,
+                 params: SiteParams | None = None) -> Tensor:
         """Whether ``X`` is closed for each (site, tick): bool tensor of the broadcast shape.
 
         ``site_idx`` and ``ticks`` broadcast against each other, e.g. ``[B]`` and ``[T, 1]``
@@ -134,18 +176,51 @@ class Site:
         ``mix(hash(seed, site, stream) ^ hash(tick)) < p_c * 2**32``: a pure function of the
         three integers that costs one mixing round per element of the block.
         """
-        return self.closures_hashed(self.site_hash(seed, site_idx), ticks)
+        return self.closures_hashed(self.site_hash(seed, site_idx), ticks, params)
 
     def site_hash(self, seed: int, site_idx: Tensor) -> Tensor:
         """The per-site half of the closure draw (cache it while the site index is fixed)."""
         return rng.hash_ints(seed, site_idx, rng.STREAM_CLOSURE, device=self.device)
 
-    def closures_hashed(self, site_hash: Tensor, ticks: Tensor) -> Tensor:
-        """:meth:`closures` from a precomputed :meth:`site_hash`."""
+    def closures_hashed(self, site_hash: Tensor, ticks: Tensor,
+                        params: SiteParams | None = None) -> Tensor:
+        """:meth:`closures` from a precomputed :meth:`site_hash`; with ``params`` (the sites
+        of a distribution, ``[B]`` along the last dimension) each site's own ``p_c``."""
+        if params is not None:
+            return rng.mix_below(site_hash, rng.hash_ints(ticks, device=self.device),
+                                 params.closure)
         if self.p_c <= 0.0:
             shape = torch.broadcast_shapes(site_hash.shape, ticks.shape)
             return torch.zeros(shape, dtype=torch.bool, device=self.device)
         return rng.combine_below(site_hash, rng.hash_ints(ticks, device=self.device), self.p_c)
+
+    def draw_params(self, seed: int, site_idx: Tensor) -> SiteParams:
+        """The parameters of each site of a distribution, a pure function of ``(seed, site
+        index)`` (MODEL §1.5): integers uniform on their range (a 32-bit draw modulo the
+        range's size), ``p_c`` = low + u (high - low) with u on the 24-bit grid of [0, 1)."""
+        cfg, r = self.cfg, self.ranges
+        assert r is not None, "draw_params needs a site distribution (site.ranges)"
+        site_idx = site_idx.to(self.device, torch.int64)
+        kw = dict(dtype=torch.int64, device=self.device)
+
+        def integer(k: int, rng_range: list[int] | None, fixed: int) -> Tensor:
+            if rng_range is None:
+                return torch.full(site_idx.shape, fixed, **kw)
+            lo, hi = int(rng_range[0]), int(rng_range[1])
+            h = rng.hash_ints(seed, site_idx, rng.STREAM_SITE, k, device=self.device)
+            return lo + h % (hi - lo + 1)
+
+        n_v = integer(0, r.n_vehicles, cfg.n_vehicles)
+        t_c = integer(1, r.t_c, cfg.t_c)
+        if r.p_c is None:
+            p_c = torch.full(site_idx.shape, float(cfg.p_c), dtype=torch.float64,
+                             device=self.device)
+        else:
+            u = rng.uniform(seed, site_idx, rng.STREAM_SITE, 2, device=self.device)
+            p_c = float(r.p_c[0]) + u.double() * (float(r.p_c[1]) - float(r.p_c[0]))
+        gain = (float(cfg.e_charge) / t_c.double()).float()  # as e_charge / t_c, then float32
+        closure = torch.round(p_c * float(1 << 32)).to(torch.int64)
+        return SiteParams(n_vehicles=n_v, t_c=t_c, gain=gain, closure=closure, p_c=p_c)
 
     def init_state(self, seed: int, site_idx: Tensor) -> tuple[SiteState, Tensor]:
         """Random initial states (MODEL §1) as a pure function of ``(seed, site index)``.
@@ -156,6 +231,7 @@ class Site:
         """
         site_idx = site_idx.to(self.device, torch.int64)
         b, v = site_idx.shape[0], self.n_vehicles
+        params = None if self.ranges is None else self.draw_params(seed, site_idx)
         cand = self._start_nodes
         keys = rng.uniform(seed, site_idx[None, :], cand[:, None], rng.STREAM_INIT_POS,
                            device=self.device)  # [N-1, B]
@@ -165,12 +241,17 @@ class Site:
                         rng.STREAM_INIT_SOC, device=self.device)
         lo = self.soc_low + self.cfg.xi
         soc = lo + u * (100.0 - lo)
+        if params is not None:  # the vehicles a site does not have are parked, full
+            parked = torch.arange(v, device=self.device)[:, None] >= params.n_vehicles
+            pos = pos.masked_fill(parked, self.park)
+            soc = soc.masked_fill(parked, 100.0)
         state = SiteState(
             pos=pos,
             soc=soc,
             left=torch.zeros(v, b, dtype=torch.int64, device=self.device),
             charge=torch.zeros(b, dtype=torch.bool, device=self.device),
             tick=torch.zeros(b, dtype=torch.int64, device=self.device),
+            params=params,
         )
         return state, (pos == D).any(0)
 
@@ -180,8 +261,8 @@ class Site:
 
         With ``active=None`` every site advances (the fast path of the evaluation loop).
         """
-        pos, left = s.pos, s.left
-        idx = pos + s.charge * self.n_nodes
+        pos, left, par = s.pos, s.left, s.params
+        idx = pos + s.charge * self._stride
         tgt = self._succ.take(idx)
         occ = self._bit.take(pos).sum(0)  # [B] occupancy bits at the start of the tick
         occ_d = (occ & 1).bool()
@@ -194,12 +275,20 @@ class Site:
         code = charging * 2 + move  # 0 idle, 1 move, 2 charge
         if active is not None:
             code.masked_fill_(~active, 3)  # 3: frozen, no change
-        s.soc.add_(self._delta.take(code)).clamp_(max=100.0)
+        if par is not None:
+            code.masked_fill_(pos == self.park, 3)  # parked vehicles never change
+            delta = torch.where(code == 2, par.gain, self._delta.take(code))
+        else:
+            delta = self._delta.take(code)
+        s.soc.add_(delta).clamp_(max=100.0)
         left.sub_(charging.long())
         if self.leave_when_full:  # the charger ends the session on a full battery
             left.masked_fill_(charging & (s.soc >= 100.0), 0)
         into_c = move & (tgt == C)
-        left.masked_fill_(into_c, self.t_c)
+        if par is not None:
+            left.copy_(torch.where(into_c, par.t_c, left))
+        else:
+            left.masked_fill_(into_c, self.t_c)
         queue = occ_d & s.charge & ~into_c.any(0)
         arrived = (move & (tgt == D)).any(0)
         s.pos = torch.where(move, tgt, pos)
