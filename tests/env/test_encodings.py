@@ -28,3 +28,43 @@ def test_encodings_on_a_hand_built_state():
                      left=torch.zeros(1, 1, dtype=torch.int64), charge=torch.tensor([False]),
                      tick=torch.zeros(1, dtype=torch.int64))
     assert torch.allclose(get_encoding("partial")(site, lone), torch.tensor([[0.5, 1.0, 0.0]]))
+
+
+def test_partial_site_is_partial_plus_the_sites_own_parameters():
+    from fleet_torchrl.sim import SiteRanges
+
+    one = SiteConfig(n_vehicles=4, p_c=0.6, t_c=20).validate()
+    site = Site(one)
+    s, _ = site.init_state(0, torch.arange(32))
+    full = get_encoding("partial_site")(site, s)
+    assert full.shape == (32, 6)
+    assert torch.equal(full[:, :3], get_encoding("partial")(site, s))
+    assert torch.allclose(full[:, 3:], torch.tensor([4 / 15, 0.6, 20 / 35]).expand(32, 3))
+    mixed = SiteConfig(ranges=SiteRanges(n_vehicles=[1, 5], p_c=[0.0, 0.9],
+                                         t_c=[10, 50])).validate()
+    site = Site(mixed)
+    s, _ = site.init_state(0, torch.arange(64))
+    obs = get_encoding("partial_site")(site, s)
+    p = s.params
+    assert torch.allclose(obs[:, 3], p.n_vehicles / 15.0)
+    assert torch.allclose(obs[:, 4], p.p_c.float())
+    assert torch.allclose(obs[:, 5], p.t_c / (p.t_c + 15.0))
+    # TC is each site's own share of its T_C: a vehicle entering C (T_C ticks left) reads
+    # (T_C + 1) / (T_C + 1) = 1 on every site; then 1 / (T_C + 1) when it has 0 left
+    s.pos[0], s.left[0] = 1, p.t_c
+    assert torch.allclose(get_encoding("partial_site")(site, s)[:, 2], torch.ones(64))
+    s.left[0] = 0
+    assert torch.allclose(get_encoding("partial")(site, s)[:, 2], 1.0 / (p.t_c + 1.0))
+
+
+def test_env_specs_of_every_encoding_on_a_site_distribution():
+    from torchrl.envs.utils import check_env_specs
+
+    from fleet_torchrl.env import FleetChargingEnv
+    from fleet_torchrl.sim import SiteRanges
+
+    mixed = SiteConfig(ranges=SiteRanges(n_vehicles=[1, 5], p_c=[0.0, 0.9],
+                                         t_c=[10, 50])).validate()
+    for name in ("partial", "all", "partial_site"):
+        env = FleetChargingEnv(mixed, name, num_sites=8, seed=0)
+        check_env_specs(env, seed=0)
