@@ -8,6 +8,14 @@ every ``network.target_update`` gradient steps (or ``SoftUpdate`` with ``network
 and Adam with ``weight_decay`` as the L2 term, its learning rate optionally decayed
 (``network.lr_decay``) over the run's gradient steps.
 
+Anchoring (``agent.anchor``, MODEL §3.5). With ``anchor=heuristic`` the greedy policy is the
+queue-aware heuristic except where the Q-network prefers the other action by more than
+``agent.anchor_margin`` (in the Q-network's units, i.e. scaled rewards): the learner only
+overrides a strong baseline where it has learned a clear advantage, a baseline-constrained
+policy improvement (residual policy learning, SPIBB). With margin 0 it is the plain greedy
+policy; with an infinite margin, the heuristic. Exploration is epsilon-greedy around the
+anchored greedy policy; the Q-learning itself is unchanged (off-policy max backups).
+
 Semi-Markov discounting and n-step returns. Each stored transition carries
 ``steps_to_next_obs``, the exponent of the discount to its bootstrap state, which TorchRL's
 TD(0) estimator applies as ``gamma ** steps_to_next_obs``: the number of decisions
@@ -39,10 +47,13 @@ from torchrl.modules import MLP, EGreedyModule, QValueActor
 from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate
 
 from ..env import MDPConfig, discount_exponent
-from ..utils.checks import check_choice, check_range
+from ..utils.checks import ConfigError, check_choice, check_range
 from .base import AgentConfig, Learner, Policy
+from .baselines import HeuristicPolicy
 
 LR_DECAYS = ("none", "cosine", "linear")
+ANCHORS = ("none", "heuristic")
+ANCHOR_STATES = ("partial", "partial_site")  # encodings whose features 0-2 the heuristic reads
 
 
 @dataclass
@@ -62,6 +73,8 @@ class DQNAgentConfig(AgentConfig):
     reset_each_round: bool = False  # false: episodes run on across rounds
     reward_scale: float = 10.0  # rewards are multiplied by this in the replay buffer
     policy: str | None = None  # saved policy for evaluation (default results/policies/dqn_<state>)
+    anchor: str = "none"  # none | heuristic: act as the heuristic unless Q disagrees clearly
+    anchor_margin: float = 0.0  # Q advantage (scaled reward units) needed to override it
 
     def validate(self, cfg: Any = None, path: str = "agent") -> DQNAgentConfig:
         check_range(f"{path}.num_sites", self.num_sites, 1, 1_000_000)
@@ -73,6 +86,13 @@ class DQNAgentConfig(AgentConfig):
         check_range(f"{path}.updates_per_round", self.updates_per_round, 0, None)
         check_range(f"{path}.n_steps", self.n_steps, 1, 1000)
         check_range(f"{path}.reward_scale", self.reward_scale, 1e-6, 1e6, allowed="[1e-06, 1e6]")
+        check_choice(f"{path}.anchor", self.anchor, ANCHORS)
+        check_range(f"{path}.anchor_margin", self.anchor_margin, 0.0, None)
+        state = getattr(getattr(cfg, "state", None), "name", None)
+        if self.anchor != "none" and state is not None and state not in ANCHOR_STATES:
+            raise ConfigError(f"{path}.anchor={self.anchor!r} is invalid with state={state!r}: "
+                              f"the heuristic reads the states {', '.join(ANCHOR_STATES)}; "
+                              "use one of them or agent.anchor=none")
         return self
 
 
@@ -127,27 +147,43 @@ def make_qnet(net: NetworkConfig, n_obs: int) -> nn.Module:
 
 
 class DQNPolicy(Policy):
-    """Greedy policy of a Q-network (ties -> pass), usable by the evaluation protocol."""
+    """Greedy policy of a Q-network (ties -> pass), usable by the evaluation protocol;
+    with ``anchor="heuristic"`` the heuristic's action unless Q prefers the other one by more
+    than ``anchor_margin`` (module docstring)."""
 
     name = "dqn"
     map_tc_values = (0.0, 0.2, 0.4, 0.6, 0.8, 1.0)
 
-    def __init__(self, network: NetworkConfig, n_obs: int, encoding: str) -> None:
+    def __init__(self, network: NetworkConfig, n_obs: int, encoding: str,
+                 anchor: str = "none", anchor_margin: float = 0.0) -> None:
         super().__init__()
         self.network, self.n_obs = network, n_obs
         self.qnet = make_qnet(network, n_obs)
         self.encoding = encoding
         self.name = f"dqn_{encoding}"
+        self.anchor, self.anchor_margin = anchor, float(anchor_margin)
+        if anchor != "none":
+            self.base = HeuristicPolicy()  # the default heuristic (MODEL §3)
 
     def spec(self) -> dict[str, Any]:
-        return {"network": asdict(self.network), "n_obs": self.n_obs, "encoding": self.encoding}
+        out = {"network": asdict(self.network), "n_obs": self.n_obs, "encoding": self.encoding}
+        if self.anchor != "none":
+            out.update(anchor=self.anchor, anchor_margin=self.anchor_margin)
+        return out
 
     @classmethod
     def from_spec(cls, spec: dict[str, Any]) -> DQNPolicy:
-        return cls(NetworkConfig(**spec["network"]), spec["n_obs"], spec["encoding"])
+        return cls(NetworkConfig(**spec["network"]), spec["n_obs"], spec["encoding"],
+                   spec.get("anchor", "none"), spec.get("anchor_margin", 0.0))
 
     def forward(self, obs: Tensor) -> Tensor:
-        return self.qnet(obs).argmax(-1)
+        q = self.qnet(obs)
+        if self.anchor == "none":
+            return q.argmax(-1)
+        adv = q[..., 1] - q[..., 0]
+        base = self.base(obs[..., :3])
+        m = self.anchor_margin
+        return torch.where(adv > m, 1, torch.where(adv < -m, 0, base))
 
 
 def make_actor(qnet: nn.Module) -> QValueActor:
@@ -218,7 +254,8 @@ class DQNLearner(Learner):
                  action_spec: TensorSpec, mdp: MDPConfig, device: torch.device | str,
                  total_updates: int = 0) -> None:
         super().__init__()
-        self.greedy = DQNPolicy(net, n_obs, encoding).to(device)
+        self.greedy = DQNPolicy(net, n_obs, encoding, agent.anchor,
+                                agent.anchor_margin).to(device)
         self.qnet = self.greedy.qnet
         self.steps_per_round = agent.steps_per_round
         self.updates_per_round = agent.updates_per_round
@@ -232,6 +269,7 @@ class DQNLearner(Learner):
                                      eps_end=agent.eps_end,
                                      annealing_num_steps=agent.eps_decay_frames)
         self.explore = TensorDictSequential(self.actor, self.egreedy)
+        self.anchored = agent.anchor != "none"
         self.loss = DQNLoss(self.actor, loss_function="l2", delay_value=True,
                             double_dqn=agent.double_dqn, action_space="categorical")
         self.loss.make_value_estimator(gamma=self.gamma)
@@ -258,6 +296,10 @@ class DQNLearner(Learner):
         return self.greedy
 
     def act(self, td: TensorDictBase) -> TensorDictBase:
+        if self.anchored:  # epsilon-greedy around the anchored greedy policy
+            with torch.no_grad():
+                td.set("action", self.greedy(td["observation"]))
+            return self.egreedy(td)
         return self.explore(td)
 
     def checkpoint_components(self) -> dict[str, Any]:

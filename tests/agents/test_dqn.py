@@ -85,3 +85,47 @@ def test_n_step_folds_rewards_with_each_transitions_discount_exponent():
     one = n_step(batch, 1, g, expo)  # n = 1: the plain transitions, exponent of each step
     assert one["next", "reward"].squeeze(-1).tolist() == [1.0, 2.0, 3.0, 4.0]
     assert one["steps_to_next_obs"].squeeze(-1).tolist() == [3.0, 2.0, 1.0, 4.0]
+
+
+def test_anchored_policy_overrides_the_heuristic_only_by_a_clear_margin(tmp_path):
+    """``agent.anchor=heuristic``: the heuristic's action unless Q prefers the other by more
+    than the margin; margin 0 is the plain greedy policy (up to ties), a huge one the
+    heuristic; the anchor survives saving and loading."""
+    from fleet_torchrl.agents import HeuristicPolicy, load_policy_file
+    from fleet_torchrl.agents.dqn import DQNPolicy, NetworkConfig
+    from fleet_torchrl.agents.policy_files import save_policy
+
+    torch.manual_seed(0)
+    obs = torch.rand(4000, 3) * torch.tensor([0.7, 0.7, 1.0]) + torch.tensor([0.3, 0.3, 0.0])
+    plain = DQNPolicy(NetworkConfig(width=8, depth=1), 3, "partial")
+    heur = HeuristicPolicy()(obs)
+    acts = {}
+    for m in (0.0, 0.05, 1e9):
+        pol = DQNPolicy(NetworkConfig(width=8, depth=1), 3, "partial", "heuristic", m)
+        pol.load_state_dict(plain.state_dict(), strict=False)
+        acts[m] = pol(obs)
+        q = plain.qnet(obs)
+        adv = q[:, 1] - q[:, 0]
+        clear = adv.abs() > m
+        assert torch.equal(acts[m][clear], (adv[clear] > 0).long())
+        assert torch.equal(acts[m][~clear], heur[~clear])
+    assert torch.equal(acts[0.0], plain(obs))  # no exact ties in random weights
+    assert torch.equal(acts[1e9], heur)
+    assert not torch.equal(acts[0.05], heur) and not torch.equal(acts[0.05], acts[0.0])
+    pol = DQNPolicy(NetworkConfig(width=8, depth=1), 3, "partial", "heuristic", 0.05)
+    pol.load_state_dict(plain.state_dict(), strict=False)
+    save_policy(tmp_path / "policy.pt", pol, "dqn")
+    back = load_policy_file(tmp_path)
+    assert back.anchor == "heuristic" and back.anchor_margin == 0.05
+    assert torch.equal(back(obs), acts[0.05])
+
+
+def test_anchor_needs_a_state_the_heuristic_reads():
+    from fleet_torchrl.utils.checks import ConfigError
+
+    with pytest.raises(ConfigError, match="agent.anchor"):
+        compose_config(["agent=dqn", "state=all", "agent.anchor=heuristic"])
+    with pytest.raises(ConfigError, match="agent.anchor"):
+        compose_config(["agent=dqn", "agent.anchor=nope"])
+    cfg = compose_config(["agent=dqn", "state=partial_site", "agent.anchor=heuristic"])
+    assert cfg.network.name == "partial_site"
