@@ -90,6 +90,7 @@ class Learner(nn.Module, ABC):
 
     steps_per_round: int | None = None
     reset_each_round: bool = True
+    evaluate_start: bool = False  # True: the training loop also evaluates the start policy
 
     def start_round(self, round_idx: int) -> None:  # noqa: B027 (optional hook)
         """Called before the first step of round ``round_idx`` (0-based)."""

@@ -87,7 +87,15 @@ def _dqn_learner(cfg: Config, env: FleetChargingEnv) -> Learner:
 
 def _search_learner(cfg: Config, env: FleetChargingEnv) -> Learner:
     init = cfg.agent.init
-    start = None if init == "uniform" else AGENTS[init].make_policy(AGENTS[init].schema())
+    if init == "uniform":
+        start = None
+    elif init in AGENTS and not AGENTS[init].trainable:
+        start = AGENTS[init].make_policy(AGENTS[init].schema())
+    else:  # a saved policy: it must read the partial state the search's classes read
+        start = load_policy_file(init)
+        if start.encoding != "partial":
+            raise ValueError(f"agent.init={init!r}: a {start.encoding!r}-state policy cannot "
+                             "start a search over partial-state policies")
     return SearchLearner(cfg.agent, cfg.site, cfg.seed, start).to(env.device)
 
 

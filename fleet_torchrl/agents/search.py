@@ -47,7 +47,7 @@ from ..env.encodings import get_encoding
 from ..sim import SiteConfig
 from ..sim import rng as _rng
 from ..sim.rollout import run_sites
-from ..utils.checks import check_choice, check_range
+from ..utils.checks import ConfigError, check_choice, check_range
 from .base import AgentConfig, Learner, Policy
 from .tabular import N_STATES, state_index
 
@@ -69,7 +69,8 @@ class SearchAgentConfig(AgentConfig):
     generations: int = 100  # rounds of the training loop
     smoothing: float = 0.5  # step towards the elite: new = (1 - s) old + s elite
     elitist: bool = False  # true: only elite candidates that beat the mode (candidate 0) count
-    init: str = "heuristic"  # starting policy (table: its actions, mlp: a clone of it)
+    init: str = "heuristic"  # starting policy: rule | heuristic | uniform | a saved policy's
+    # path (table: its actions, mlp: a clone of it)
     p_min: float = 0.15  # table: charge probabilities stay in [p_min, 1 - p_min]
     hidden: int = 16  # mlp: units per hidden layer
     depth: int = 2  # mlp: hidden layers
@@ -87,7 +88,14 @@ class SearchAgentConfig(AgentConfig):
         check_range(f"{path}.ticks", self.ticks, 1, 10**8)
         check_range(f"{path}.generations", self.generations, 1, 1_000_000)
         check_range(f"{path}.smoothing", self.smoothing, 1e-6, 1.0, allowed="(0, 1]")
-        check_choice(f"{path}.init", self.init, INITS)
+        if self.init not in INITS:  # a saved policy (file or folder) on the partial state
+            from pathlib import Path
+
+            p = Path(self.init)
+            if not (p.is_file() or (p / "policy.pt").is_file()):
+                raise ConfigError(f"{path}.init={self.init!r} is invalid: allowed one of "
+                                  f"{', '.join(INITS)} or the path of a saved policy "
+                                  "(policy.pt or its folder) that exists")
         check_range(f"{path}.p_min", self.p_min, 0.0, 0.49, allowed="[0, 0.49]")
         check_range(f"{path}.hidden", self.hidden, 1, 4096)
         check_range(f"{path}.depth", self.depth, 0, 16)
@@ -218,6 +226,7 @@ class SearchLearner(Learner):
 
     steps_per_round = 0
     reset_each_round = False
+    evaluate_start = True  # the start (e.g. a seeded policy) competes for the best snapshot
 
     def __init__(self, agent: SearchAgentConfig, site_cfg: SiteConfig, seed: int,
                  init_policy: Policy | None = None) -> None:

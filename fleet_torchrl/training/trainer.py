@@ -321,6 +321,8 @@ class Trainer:
                        unit="round")
         t_start = time.perf_counter() - p.wall_s
         rounds_done = 0
+        if p.round == 0 and not p.history and self.learner.evaluate_start:
+            self.evaluate(0)  # the start policy competes for the best snapshot
         while p.round < self.n_rounds and not p.stopped_early:
             if stop_after_rounds is not None and rounds_done >= stop_after_rounds:
                 break
