@@ -33,9 +33,9 @@ def make_state():
 
 @pytest.fixture
 def saved_policies(tmp_path):
-    """Untrained saved policies ``tabular``, ``dqn_partial`` and ``search`` under
-    ``tmp_path/policies`` (enough for the plumbing of experiments that load policies by
-    name)."""
+    """Untrained saved policies ``tabular``, ``dqn_partial``, ``search`` and ``generalist``
+    (an anchored DQN) under ``tmp_path/policies`` (enough for the plumbing of experiments
+    that load policies by name)."""
     from fleet_torchrl.agents import save_policy
     from fleet_torchrl.agents.dqn import DQNPolicy, NetworkConfig
     from fleet_torchrl.agents.tabular import TabularQPolicy
@@ -47,4 +47,6 @@ def saved_policies(tmp_path):
     from fleet_torchrl.agents.search import SearchPolicy
 
     save_policy(root / "search" / "policy.pt", SearchPolicy("table"), "search")
+    save_policy(root / "generalist" / "policy.pt",
+                DQNPolicy(net, 3, "partial", "heuristic", 1.0), "dqn")
     return root

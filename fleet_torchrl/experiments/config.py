@@ -35,6 +35,11 @@ class TableConfig:
                                    "agent.reward_scale=1.0", "train.max_episodes=30720",
                                    "train.eval_every=4", "train.eval_sims=1000",
                                    "train.eval_ticks=5000", "train.threads=1"],
+        "generalist": ["agent=dqn", "state=partial", "site=randomized",
+                       "mdp.reward=throughput", "agent.reward_scale=1.0",
+                       "agent.anchor=heuristic", "agent.anchor_margin=4.0",
+                       "train.max_episodes=30720", "train.eval_every=4",
+                       "train.eval_sims=1000", "train.eval_ticks=5000", "train.threads=1"],
         "search": ["agent=search", "train.threads=1"],
         "search_mlp": ["agent=search", "agent.policy_class=mlp", "agent.sigma_init=0.3",
                        "agent.sigma_min=0.01", "agent.sites=128", "train.threads=1"],
@@ -55,10 +60,11 @@ class SweepConfig:
     value: float = 0.8  # the point evaluated by this job
     out: str = "results/sweeps"
     policies: list[str] = field(default_factory=lambda: [
-        "rule", "heuristic", "tabular", "dqn_partial", "dqn_all", "search"])
+        "rule", "heuristic", "tabular", "dqn_partial", "dqn_all", "generalist", "search"])
     # the point's own optimum: a direct policy search (agent=search) on the point's site,
     # cached under search_dir by its training settings; [] of overrides = the search defaults
     search: bool = True
+    search_seeded: bool = True  # start it from the point's best partial-state policy
     search_overrides: list[str] = field(default_factory=list)
     search_dir: str = "results/search"
 
@@ -85,7 +91,7 @@ class MapsConfig:
 
     out: str = "results/policy_maps"
     policies: list[str] = field(default_factory=lambda: [
-        "rule", "heuristic", "tabular", "dqn_partial", "search"])
+        "rule", "heuristic", "tabular", "dqn_partial", "generalist", "search"])
 
     def validate(self, known: tuple[str, ...], path: str = "maps") -> MapsConfig:
         for i, name in enumerate(self.policies):

@@ -9,8 +9,12 @@ sweep.value``) with the evaluation protocol (``eval.n_sims`` x ``eval.ticks``, c
 numbers: all policies of a point see the same sites). With ``sweep.search`` (default) it also
 runs the direct policy search (``agent=search``, MODEL §3.4) on the point's own site and
 evaluates what it found as the row ``optimum``; every row then reports its share of the
-optimum's gain over the rule. A search is cached under ``sweep.search_dir/<point>/<key>``,
-``key`` a hash of its training settings, and reused whenever they match.
+optimum's gain over the rule. With ``sweep.search_seeded`` (default) the search starts from
+the best ``partial``-state policy of ``sweep.policies`` at the point, judged on the search's
+own selection set (``train.eval_*``, never the evaluation's sites), so the optimum begins at
+the best policy known there and the search improves on it. A search is cached under
+``sweep.search_dir/<point>/<key>``, ``key`` a hash of its training settings and of the policy
+it starts from, and reused whenever they match.
 
 The point's file ``results/sweeps/<name>/<param>=<value>.json`` is written atomically and
 records a key of everything it depends on (the site, the evaluation settings, each policy's
@@ -33,7 +37,7 @@ from ..agents import AGENTS, load_policies, load_policy_file
 from ..agents.base import Policy
 from ..agents.registry import saved_policy_path
 from ..config import Config, compose_config
-from ..evaluation import evaluate_with, gain_over
+from ..evaluation import evaluate_policy, evaluate_with, gain_over
 from ..sim import SiteConfig
 from ..training import Trainer, training_fingerprint
 from ..utils.runinfo import file_sha256, read_json, run_info, to_jsonable, write_json
@@ -71,10 +75,34 @@ def search_config(cfg: Config, site: SiteConfig) -> Config:
     return run_cfg
 
 
+def search_start(cfg: Config, run_cfg: Config, policies: dict[str, Policy]) -> str:
+    """The ``agent.init`` of the point's search: the best ``partial``-state policy of the
+    point (fewest failures, then most trips) on the search's selection set, as a baseline's
+    name or a saved policy's path."""
+    t = run_cfg.train
+    best: tuple[tuple[float, float], str] | None = None
+    for name, pol in policies.items():
+        if pol.encoding != "partial":
+            continue
+        res = evaluate_policy(pol, run_cfg.site, t.eval_sims, t.eval_ticks, t.eval_seed,
+                              cfg.eval.device)
+        key = (res["failure_rate"], -res["trips_mean"])
+        if best is None or key < best[0]:
+            best = (key, name)
+    if best is None:
+        return run_cfg.agent.init
+    spec = AGENTS.get(best[1])
+    if spec is not None and not spec.trainable:
+        return best[1]
+    return str(saved_policy_path(cfg.table.policies_dir, best[1]))
+
+
 def point_search(cfg: Config, run_cfg: Config, label: str) -> tuple[Policy, dict[str, Any]]:
     """The point's search policy (trained with ``run_cfg``, the point's
-    :func:`search_config`, or reused when its settings match) and its summary."""
-    out = Path(cfg.sweep.search_dir) / label / digest(training_fingerprint(run_cfg))
+    :func:`search_config`, or reused when its settings and start match) and its summary."""
+    init = run_cfg.agent.init
+    start = file_sha256(init) if Path(init).is_file() else None
+    out = Path(cfg.sweep.search_dir) / label / digest([training_fingerprint(run_cfg), start])
     run_cfg.train.out_dir = str(out)
     if not reusable(out, run_cfg):
         print(f"[sweep] {label}: searching the point's optimum -> {out}", flush=True)
@@ -92,6 +120,7 @@ def point_key(cfg: Config, site: SiteConfig, search_cfg: Config | None) -> str:
         "policies": [policy_identity(cfg, n) for n in cfg.sweep.policies]}
     if search_cfg is not None:
         parts["search"] = training_fingerprint(search_cfg)
+        parts["search_seeded"] = cfg.sweep.search_seeded
     return digest(parts)
 
 
@@ -126,6 +155,11 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
     policies = load_policies(cfg, cfg.sweep.policies)
     search_summary = None
     if search_cfg is not None:
+        if cfg.sweep.search_seeded and not any(o.split("=", 1)[0].lstrip("+~") == "agent.init"
+                                               for o in cfg.sweep.search_overrides):
+            search_cfg.agent.init = search_start(cfg, search_cfg, policies)
+            print(f"[sweep] {label}: the search starts from {search_cfg.agent.init}",
+                  flush=True)
         policies[OPTIMUM], search_summary = point_search(cfg, search_cfg, label)
     results = {name: evaluate_with(pol, site, e, name=name) for name, pol in policies.items()}
     rule = results.get("rule")
@@ -141,8 +175,9 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
         ok = best is not None and r["gain_pct"] is not None and best > 0
         r["share_of_optimum_pct"] = 100.0 * r["gain_pct"] / best if ok else None
     write_json(path, {"rows": rows, "site": site, "key": key,
-                      "search": search_summary and {k: search_summary[k] for k in
-                                                    ("run_dir", "wall_s", "best")},
+                      "search": search_summary and {
+                          **{k: search_summary[k] for k in ("run_dir", "wall_s", "best")},
+                          "init": search_cfg.agent.init},
                       "meta": run_info(cfg, seed=e.seed)})
     err = path.with_suffix(".error")
     if err.exists():

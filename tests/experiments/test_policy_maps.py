@@ -11,8 +11,9 @@ def test_policy_maps_from_saved_policies(tmp_path, saved_policies):
     root = saved_policies
     cfg = compose_config([f"table.policies_dir={root}", f"maps.out={tmp_path / 'maps'}"])
     paths = run(cfg)
-    assert sorted(p.name for p in paths) == ["dqn_partial.png", "heuristic.png", "rule.png",
-                                             "search.png", "tabular.png"]
+    assert sorted(p.name for p in paths) == ["dqn_partial.png", "generalist.png",
+                                             "heuristic.png", "rule.png", "search.png",
+                                             "tabular.png"]
     from fleet_torchrl.agents import RulePolicy
     from fleet_torchrl.utils.plotting import TC_TABULAR, policy_map
 

@@ -19,6 +19,27 @@ TINY_SEARCH = "sweep.search_overrides=[" + ",".join(f"'{o}'" for o in (
     "agent.ticks=300", "train.eval_sims=8", "train.eval_ticks=300")) + "]"
 
 
+def test_search_starts_from_the_points_best_partial_policy(saved_policies):
+    """The point's search starts from the best partial-state policy there, judged on the
+    search's own selection set: the heuristic beats the rule and an untrained network on the
+    default site; a saved policy is named by its file."""
+    from dataclasses import replace
+
+    from fleet_torchrl.agents import load_policies
+    from fleet_torchrl.config import compose_config
+    from fleet_torchrl.experiments.sweeps import search_config, search_start
+
+    cfg = compose_config([f"table.policies_dir={saved_policies}", TINY_SEARCH])
+    site = replace(cfg.site, p_c=0.8)
+    run_cfg = search_config(cfg, site)
+    assert run_cfg.train.eval_sims == 8 and run_cfg.site.p_c == 0.8
+    pols = load_policies(cfg, ["rule", "heuristic", "dqn_partial"])
+    assert search_start(cfg, run_cfg, pols) == "heuristic"
+    pols.pop("heuristic")
+    rule_or_net = search_start(cfg, run_cfg, pols)
+    assert rule_or_net in ("rule", str(saved_policies / "dqn_partial" / "policy.pt"))
+
+
 @pytest.mark.slow
 def test_miniature_sweep_end_to_end(tmp_path, saved_policies):
     root = saved_policies
@@ -51,6 +72,9 @@ def test_miniature_sweep_end_to_end(tmp_path, saved_policies):
     assert sorted(p.parent.parent.name for p in (tmp_path / "search").glob("*/*/policy.pt")) == [
         "p_c=0.4", "p_c=0.8"]
     assert (out / "pc.png").stat().st_size > 1000 and (out / "pc.json").exists()
+    point = json.loads((out / "pc" / "p_c=0.8.json").read_text())
+    assert point["search"]["init"] in ("rule", "heuristic", str(root / "tabular" / "policy.pt"),
+                                       str(root / "dqn_partial" / "policy.pt"))
     # a rerun skips the finished points; a point that cannot run is reported, not fatal
     r2 = subprocess.run(cmd[:5] + ["sweep.value=0.8"] + cmd[6:], capture_output=True,
                         text=True, timeout=300)
