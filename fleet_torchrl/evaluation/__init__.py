@@ -10,9 +10,11 @@ from .results import (
     load_result,
     save_result,
     seed_interval,
+    site_strata,
     summarize,
+    worst_stratum_gain,
 )
 
 __all__ = ["EvalConfig", "check_result_pair", "compare", "evaluate_policy", "evaluate_with",
            "format_table", "gain_over", "load_result", "save_result", "seed_interval",
-           "simulate", "summarize"]
+           "simulate", "site_strata", "summarize", "worst_stratum_gain"]

@@ -54,6 +54,46 @@ def summarize(records: dict[str, Tensor]) -> dict[str, float]:
     }
 
 
+# ------------------------------------------------------------------------- strata
+def site_strata(site_cfg: Any, n_sims: int, seed: int) -> dict[str, Tensor]:
+    """The marginal strata of an evaluation set on a site distribution (MODEL §1.6): for each
+    drawn parameter, one ``[n_sims]`` bool mask per value of an integer range of at most five
+    values, else per third of its range (``"t_c:10-23"``); a single site is one stratum,
+    ``"all"``. Each simulation lies in one stratum per drawn parameter."""
+    from ..sim import Site
+
+    if not site_cfg.randomized:
+        return {"all": torch.ones(n_sims, dtype=torch.bool)}
+    p = Site(site_cfg).draw_params(seed, torch.arange(n_sims))
+    out: dict[str, Tensor] = {}
+    for name in site_cfg.ranges.varied():
+        lo, hi = getattr(site_cfg.ranges, name)
+        values = getattr(p, name).cpu().double()
+        if name != "p_c" and hi - lo + 1 <= 5:
+            for v in range(int(lo), int(hi) + 1):
+                out[f"{name}={v}"] = values == v
+            continue
+        cuts = [lo + (hi - lo) * k / 3 for k in range(4)]
+        for a, b in zip(cuts[:-1], cuts[1:], strict=True):
+            last = b == cuts[-1]
+            out[f"{name}:{a:g}-{b:g}"] = (values >= a) & ((values <= b) if last else (values < b))
+    return out
+
+
+def worst_stratum_gain(result: dict[str, Any], baseline: dict[str, Any],
+                       strata: dict[str, Tensor]) -> tuple[float, str]:
+    """The lowest paired trips gain (%) of ``result`` over ``baseline`` in any stratum (each
+    stratum's total trips over the baseline's), and that stratum's name."""
+    a = torch.tensor(result["records"]["trips"], dtype=torch.float64)
+    b = torch.tensor(baseline["records"]["trips"], dtype=torch.float64)
+    worst = (math.inf, "")
+    for name, m in strata.items():
+        if bool(m.any()):
+            g = 100.0 * (float(a[m].sum()) / max(float(b[m].sum()), 1.0) - 1.0)
+            worst = min(worst, (g, name))
+    return worst
+
+
 # ------------------------------------------------------------------------- comparison
 def gain_over(result: dict[str, Any], baseline: dict[str, Any]) -> dict[str, Any]:
     """Trips gain of ``result`` over ``baseline`` in percent of the baseline's mean.

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 from ..utils.checks import check_choice, check_device, check_range
 
-SELECTIONS = ("objective", "trips")
+SELECTIONS = ("objective", "trips", "robust")
 
 
 @dataclass
@@ -18,7 +18,7 @@ class TrainConfig:
     eval_sims: int = 500  # evaluation sites (fixed common random numbers)
     eval_ticks: int = 3000
     eval_seed: int = 1_000_003  # distinct from the final evaluation's seed
-    select: str = "objective"  # snapshot selection after failures: objective | trips
+    select: str = "objective"  # snapshot selection after failures: objective | trips | robust
     patience: int = 0  # evaluations without improvement before stopping (0 = never stop)
     checkpoint_every: int = 5  # rounds between checkpoints
     out_dir: str | None = None  # best policy goes here; default results/policies/<run name>

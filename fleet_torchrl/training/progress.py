@@ -6,12 +6,19 @@ from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
 
-def selection_score(select: str, objective: str, res: dict[str, Any]) -> float:
+def selection_score(select: str, objective: str, res: dict[str, Any],
+                    worst_gain: float | None = None) -> float:
     """What ranks two evaluations with the same failure rate (``train.select``): the mean
     trips (``trips``), or the score of the objective being learned (``objective``, the
     agent's :meth:`~fleet_torchrl.agents.base.AgentConfig.objective`): the thesis reward
     costs queue ticks, so fewer of them win; the throughput reward and the direct search
-    count trips, so more of them win."""
+    count trips, so more of them win. ``robust``: the worst paired gain over the heuristic
+    in any stratum of the selection set (``worst_gain``, see
+    :func:`~fleet_torchrl.evaluation.worst_stratum_gain`), so a snapshot that loses to the
+    heuristic anywhere ranks below one that never does."""
+    if select == "robust":
+        assert worst_gain is not None, "select=robust needs the worst stratum gain"
+        return float(worst_gain)
     if select == "objective" and objective == "thesis":
         return -float(res["queue_mean"])
     return float(res["trips_mean"])

@@ -47,11 +47,11 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 
 from ..agents.base import Policy
-from ..agents.baselines import RulePolicy
+from ..agents.baselines import HeuristicPolicy, RulePolicy
 from ..agents.policy_files import POLICY_FILE, save_policy
 from ..agents.registry import default_policy_dir, get_agent
 from ..env import FleetChargingEnv
-from ..evaluation import evaluate_policy, gain_over
+from ..evaluation import evaluate_policy, gain_over, site_strata, worst_stratum_gain
 from ..utils.monitor import Monitor
 from ..utils.numerics import flush_denormals
 from ..utils.plotting import plot_policy_map
@@ -169,6 +169,9 @@ class Trainer:
         self.eval_args = dict(site_cfg=self.cfg.site, n_sims=t.eval_sims, ticks=t.eval_ticks,
                               seed=t.eval_seed, device=t.device)
         self.rule_eval = evaluate_policy(RulePolicy(), **self.eval_args)
+        if self.cfg.train.select == "robust":  # the reference every stratum is judged by
+            self.heuristic_eval = evaluate_policy(HeuristicPolicy(), **self.eval_args)
+            self.strata = site_strata(self.cfg.site, t.eval_sims, t.eval_seed)
 
     def setup_monitor(self) -> None:
         self.monitor = Monitor(self.run_dir / "tb" if self.cfg.train.tensorboard else None)
@@ -257,7 +260,13 @@ class Trainer:
         res = evaluate_policy(pol, name=self.name, **self.eval_args)
         gain = gain_over(res, self.rule_eval)["gain_pct"]
         p = self.progress
-        score = selection_score(c.train.select, c.agent.objective(c.mdp), res)
+        worst = None
+        if c.train.select == "robust":
+            worst, where = worst_stratum_gain(res, self.heuristic_eval, self.strata)
+            self.monitor.scalars({"eval/worst_stratum_gain_vs_heuristic_pct": worst}, step)
+            log.info("round %d: worst stratum %s, %+.3f %% vs the heuristic", self.progress.round,
+                     where, worst)
+        score = selection_score(c.train.select, c.agent.objective(c.mdp), res, worst)
         improved = p.is_better(res["failure_rate"], score)
         if improved:
             p.best, p.best_round, p.evals_since_best = ((res["failure_rate"], score),

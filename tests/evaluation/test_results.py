@@ -121,3 +121,26 @@ def test_result_json_and_csv_are_one_unit(tmp_path, monkeypatch):
     assert load_result(js)["policy"] == "rule"  # the old JSON is intact ...
     with pytest.raises(ValueError, match="does not belong to"):
         check_result_pair(js)  # ... and the new CSV beside it is told apart
+
+
+def test_strata_of_a_site_distribution_and_the_worst_stratum_gain():
+    from fleet_torchrl.evaluation import site_strata, worst_stratum_gain
+    from fleet_torchrl.sim import Site, SiteRanges
+
+    assert list(site_strata(SiteConfig(), 10, 0)) == ["all"]
+    cfg = SiteConfig(ranges=SiteRanges(n_vehicles=[2, 4], t_c=[10, 40])).validate()
+    strata = site_strata(cfg, 600, 5)
+    assert list(strata) == ["n_vehicles=2", "n_vehicles=3", "n_vehicles=4", "t_c:10-20",
+                            "t_c:20-30", "t_c:30-40"]
+    p = Site(cfg).draw_params(5, torch.arange(600))
+    for name in ("n_vehicles", "t_c"):  # each simulation in exactly one stratum per parameter
+        own = torch.stack([m for k, m in strata.items() if k.startswith(name)])
+        assert (own.sum(0) == 1).all()
+    assert torch.equal(strata["n_vehicles=3"], p.n_vehicles == 3)
+    assert torch.equal(strata["t_c:30-40"], p.t_c >= 30)
+    base = {"records": {"trips": [100] * 600}}
+    better = {"records": {"trips": [101] * 600}}
+    worse_on_4 = {"records": {"trips": torch.where(p.n_vehicles == 4, 99, 102).tolist()}}
+    assert worst_stratum_gain(better, base, strata) == pytest.approx((1.0, "n_vehicles=2"))
+    g, where = worst_stratum_gain(worse_on_4, base, strata)
+    assert where == "n_vehicles=4" and g == pytest.approx(-1.0)

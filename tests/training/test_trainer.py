@@ -204,3 +204,17 @@ def test_checkpoint_with_a_corrupted_member_is_a_clear_error(tmp_path):
     ckpt.write_bytes(bytes(raw))
     with pytest.raises(ValueError, match="cannot resume from .*checkpoint.ckpt"):
         _train(tiny, tmp_path, resume=True)
+
+
+def test_robust_selection_keeps_a_snapshot_that_never_loses_to_the_heuristic(tmp_path):
+    """``train.select=robust`` ranks snapshots by their worst paired gain over the heuristic
+    in any stratum of the selection set: an anchored DQN with an unreachable margin is the
+    heuristic itself, worst gain exactly 0 in every stratum."""
+    from fleet_torchrl.evaluation import site_strata
+
+    tr, out = _train([*TINY_DQN, "site=randomized", "agent.anchor=heuristic",
+                      "agent.anchor_margin=1e9", "train.select=robust",
+                      "train.tensorboard=false"], tmp_path)
+    assert set(tr.strata) == set(site_strata(tr.cfg.site, 16, tr.cfg.train.eval_seed))
+    assert tr.progress.best == (0.0, 0.0)
+    assert out["best"]["trips"] == pytest.approx(tr.heuristic_eval["trips_mean"])
