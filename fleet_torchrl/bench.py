@@ -100,7 +100,7 @@ def main(argv: list[str] | None = None) -> dict:
     if "protocol_1000x10000_s" in result:
         t = result["protocol_1000x10000_s"]
         print("\n| thesis protocol (CPU) | wall s | x numpy reference |\n|---|---:|---:|")
-        for k in ("reference", "eager", "fused"):
+        for k in ("reference", "eager", "fused", "fused_randomized"):
             print(f"| {k} | {t[k]:.3f} | {t[k] / t['reference']:.3f} |")
         print(f"| fused: compile once | {t['compile']:.2f} | |")
     if not a.skip_training:

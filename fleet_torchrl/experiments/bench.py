@@ -25,7 +25,7 @@ import torch
 
 from ..agents import RulePolicy, as_td_module
 from ..evaluation import simulate
-from ..sim import Site, SiteConfig, fused
+from ..sim import Site, SiteConfig, SiteRanges, fused
 
 
 def median_time(fn, repeats: int) -> float:
@@ -95,7 +95,8 @@ def compile_time() -> float:
 
 def bench_protocol(repeats: int, n_sims: int = 1000, ticks: int = 10_000) -> dict[str, float]:
     """Median wall times (s) of the thesis protocol with the rule policy on CPU: ``eager``,
-    ``fused`` (kernel already built) and ``reference`` (numpy), and ``compile`` (once)."""
+    ``fused`` (kernel already built) and ``reference`` (numpy), ``compile`` (once), and
+    ``fused_randomized`` (fused, every simulation its own site of ``site=randomized``)."""
     from ..sim.reference import rule_policy, simulate_reference
 
     cfg = SiteConfig()
@@ -105,13 +106,21 @@ def bench_protocol(repeats: int, n_sims: int = 1000, ticks: int = 10_000) -> dic
                                                 fused=True), repeats)
     out["eager"] = median_time(lambda: simulate(RulePolicy(), cfg, n_sims, ticks, 0, "cpu",
                                                 fused=False), repeats)
+    mixed = SiteConfig(name="randomized", ranges=SiteRanges(n_vehicles=[1, 5], p_c=[0.0, 0.9],
+                                                            t_c=[10, 50])).validate()
+    out["fused_randomized"] = median_time(lambda: simulate(RulePolicy(), mixed, n_sims, ticks, 0,
+                                                           "cpu", fused=True), repeats)
     out["reference"] = median_time(lambda: simulate_reference(rule_policy, cfg, n_sims, ticks, 0),
                                    max(1, repeats // 2))
     return out
 
 
 LEARNERS = {"tabular": ["agent=tabular"], "dqn_partial": ["agent=dqn", "state=partial"],
-            "dqn_all": ["agent=dqn", "state=all"], "search": ["agent=search"],
+            "dqn_all": ["agent=dqn", "state=all"],
+            "generalist": ["agent=dqn", "site=randomized", "mdp.reward=throughput",
+                           "agent.reward_scale=1.0", "agent.anchor=heuristic",
+                           "agent.anchor_margin=4.0"],
+            "search": ["agent=search"],
             "search_mlp": ["agent=search", "agent.policy_class=mlp"]}
 
 
