@@ -12,7 +12,10 @@ evaluates what it found as the row ``optimum``; every row then reports its share
 optimum's gain over the rule. With ``sweep.search_seeded`` (default) the search starts from
 the best ``partial``-state policy of ``sweep.policies`` at the point, judged on the search's
 own selection set (``train.eval_*``, never the evaluation's sites), so the optimum begins at
-the best policy known there and the search improves on it. A search is cached under
+the best policy known there and the search improves on it. The row ``optimum`` is what the
+search found, unless one of the policies it competes with does better on that selection
+set: the best policy known at the point, chosen without the evaluation's sites (the JSON's
+``search.optimum_from`` says which). A search is cached under
 ``sweep.search_dir/<point>/<key>``, ``key`` a hash of its training settings and of the policy
 it starts from, and reused whenever they match.
 
@@ -36,6 +39,7 @@ from typing import Any
 from ..agents import AGENTS, load_policies, load_policy_file
 from ..agents.base import Policy
 from ..agents.registry import saved_policy_path
+from ..agents.search import SearchPolicy, cell_centres
 from ..config import Config, compose_config
 from ..evaluation import evaluate_policy, evaluate_with, gain_over
 from ..sim import SiteConfig
@@ -75,18 +79,29 @@ def search_config(cfg: Config, site: SiteConfig) -> Config:
     return run_cfg
 
 
-def search_start(cfg: Config, run_cfg: Config, policies: dict[str, Policy]) -> str:
-    """The ``agent.init`` of the point's search: the best ``partial``-state policy of the
-    point (fewest failures, then most trips) on the search's selection set, as a baseline's
-    name or a saved policy's path."""
+def on_selection_set(cfg: Config, run_cfg: Config, pol: Policy) -> tuple[float, float]:
+    """``(failure rate, -mean trips)`` of a policy on the point search's selection set
+    (``train.eval_*`` of the search, apart from the evaluation's sites): lower is better."""
     t = run_cfg.train
+    res = evaluate_policy(pol, run_cfg.site, t.eval_sims, t.eval_ticks, t.eval_seed,
+                          cfg.eval.device)
+    return res["failure_rate"], -res["trips_mean"]
+
+
+def search_start(cfg: Config, run_cfg: Config, policies: dict[str, Policy]) -> str:
+    """The ``agent.init`` of the point's search: the ``partial``-state policy of the point
+    whose start of the search (for the table class: its action table, what the search can
+    represent of it) does best on the search's selection set, as a baseline's name or a
+    saved policy's path."""
     best: tuple[tuple[float, float], str] | None = None
     for name, pol in policies.items():
         if pol.encoding != "partial":
             continue
-        res = evaluate_policy(pol, run_cfg.site, t.eval_sims, t.eval_ticks, t.eval_seed,
-                              cfg.eval.device)
-        key = (res["failure_rate"], -res["trips_mean"])
+        start = pol
+        if run_cfg.agent.policy_class == "table":
+            start = SearchPolicy("table")
+            start.charge.copy_(pol(cell_centres()).long())
+        key = on_selection_set(cfg, run_cfg, start)
         if best is None or key < best[0]:
             best = (key, name)
     if best is None:
@@ -121,6 +136,7 @@ def point_key(cfg: Config, site: SiteConfig, search_cfg: Config | None) -> str:
     if search_cfg is not None:
         parts["search"] = training_fingerprint(search_cfg)
         parts["search_seeded"] = cfg.sweep.search_seeded
+        parts["optimum"] = "best of the search and the policies on its selection set"
     return digest(parts)
 
 
@@ -154,13 +170,23 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
     e = cfg.eval
     policies = load_policies(cfg, cfg.sweep.policies)
     search_summary = None
+    optimum_from = None
     if search_cfg is not None:
         if cfg.sweep.search_seeded and not any(o.split("=", 1)[0].lstrip("+~") == "agent.init"
                                                for o in cfg.sweep.search_overrides):
             search_cfg.agent.init = search_start(cfg, search_cfg, policies)
             print(f"[sweep] {label}: the search starts from {search_cfg.agent.init}",
                   flush=True)
-        policies[OPTIMUM], search_summary = point_search(cfg, search_cfg, label)
+        found, search_summary = point_search(cfg, search_cfg, label)
+        # the optimum: what the search found, unless a policy it competes with does better
+        # on the search's selection set (never on the evaluation's sites)
+        keys = {name: on_selection_set(cfg, search_cfg, pol)
+                for name, pol in {"search": found, **policies}.items()}
+        optimum_from = min(keys, key=lambda n: (keys[n], n != "search"))
+        policies[OPTIMUM] = found if optimum_from == "search" else policies[optimum_from]
+        print(f"[sweep] {label}: the optimum is {optimum_from}'s policy "
+              f"({-keys[optimum_from][1]:.1f} trips on the selection set, the search's "
+              f"{-keys['search'][1]:.1f})", flush=True)
     results = {name: evaluate_with(pol, site, e, name=name) for name, pol in policies.items()}
     rule = results.get("rule")
     rows = []
@@ -177,7 +203,7 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
     write_json(path, {"rows": rows, "site": site, "key": key,
                       "search": search_summary and {
                           **{k: search_summary[k] for k in ("run_dir", "wall_s", "best")},
-                          "init": search_cfg.agent.init},
+                          "init": search_cfg.agent.init, "optimum_from": optimum_from},
                       "meta": run_info(cfg, seed=e.seed)})
     err = path.with_suffix(".error")
     if err.exists():

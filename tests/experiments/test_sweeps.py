@@ -75,6 +75,9 @@ def test_miniature_sweep_end_to_end(tmp_path, saved_policies):
     point = json.loads((out / "pc" / "p_c=0.8.json").read_text())
     assert point["search"]["init"] in ("rule", "heuristic", str(root / "tabular" / "policy.pt"),
                                        str(root / "dqn_partial" / "policy.pt"))
+    # the optimum row is the search's policy or the best policy on its selection set
+    assert point["search"]["optimum_from"] in ("search", "rule", "heuristic", "tabular",
+                                               "dqn_partial")
     # a rerun skips the finished points; a point that cannot run is reported, not fatal
     r2 = subprocess.run(cmd[:5] + ["sweep.value=0.8"] + cmd[6:], capture_output=True,
                         text=True, timeout=300)
