@@ -81,7 +81,7 @@ def build(results: Path, out: Path) -> str:
         if info.exists():
             tt = read_json(info).get("train_time_s", {})
             parts += ["Training wall time per run: " + ", ".join(
-                f"{k} {v / 60:.1f} min" if v else f"{k} (reused)" for k, v in tt.items()), ""]
+                f"{k} {v / 60:.1f} min" if v else f"{k} (n/a)" for k, v in tt.items()), ""]
         for name, title in (("boxplot.png", "box plot"),
                             ("learning_curves.png", "learning curves")):
             fig = results / "table" / name
@@ -102,8 +102,11 @@ def build(results: Path, out: Path) -> str:
         parts += ["Not run yet: `make policy-maps`.", ""]
 
     parts += ["## Generalisation sweeps (MODEL §5 item 3)", "",
-              "Policies trained on the default site, evaluated on changed sites, beside "
-              "`optimum`: the direct policy search (MODEL §3.4) run on the point's own site. "
+              "Policies trained on the default site and the `generalist` (trained on the "
+              "site distribution, MODEL §3.5), evaluated on changed sites, beside `optimum`: "
+              "the direct policy search (MODEL §3.4) run on the point's own site from the "
+              "point's best policy, or the policy that beats it on the search's selection "
+              "set. "
               "Cells: trips gain over the rule in % ± 95% CI, in brackets the share of the "
               "optimum's gain, and the failure rate when not zero.", ""]
     for name, label in SWEEPS:

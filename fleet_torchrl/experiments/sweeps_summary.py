@@ -32,7 +32,7 @@ def summarize(name: str, out: Path, expect: list[str] | None = None) -> dict:
     summary = {"sweep": name, "param": param, "rows": rows, "failed": failed,
                "missing": missing}
     write_json(out / f"{name}.json", summary)
-    fig = plot_sweep(rows, param, f"sweep {name}: trained on the default site, vs the "
-                                  "point's optimum")
+    fig = plot_sweep(rows, param, f"sweep {name}: learners of the default site, the "
+                                  "generalist, the point's optimum")
     save_figure(fig, out / f"{name}.png")
     return summary

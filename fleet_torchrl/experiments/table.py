@@ -120,14 +120,26 @@ def run_training(cmd: list[str]) -> float:
 
 
 def ensure_policies(cfg: Config) -> dict[tuple[str, int], float | None]:
-    """Train what is missing (``table.jobs`` at once); seconds per (name, seed), None if reused."""
+    """Train what is missing (``table.jobs`` at once); seconds per (name, seed): the run's
+    wall time, or for a reused policy the training time its summary records (None if it
+    records none)."""
     todo = [(name, seed) for name in cfg.table.train for seed in training_seeds(cfg)]
     plans = {job: plan_training(*job, cfg) for job in todo}
     runs = [job for job in todo if plans[job] is not None]
     with ThreadPoolExecutor(max_workers=cfg.table.jobs) as pool:
         times = dict(zip(runs, pool.map(lambda job: run_training(plans[job]), runs),
                          strict=True))
-    return {job: times.get(job) for job in todo}
+    return {job: times[job] if job in times else recorded_train_time(*job, cfg)
+            for job in todo}
+
+
+def recorded_train_time(name: str, seed: int, cfg: Config) -> float | None:
+    """The training wall time a saved policy's summary records (seconds)."""
+    path = seed_dir(cfg.table.policies_dir, name, seed) / "train_summary.json"
+    try:
+        return float(read_json(path)["wall_s"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
 
 
 def objective_of(name: str, cfg: Config) -> str:
@@ -175,7 +187,7 @@ def rows_markdown(rows: list[dict[str, Any]], cfg: Config) -> str:
         seeds = ", ".join(map(str, r["seeds"])) or "-"
         per_seed = ", ".join(f"{g:+.2f}" for g in r["gain_per_seed"]) or "-"
         times = [t for t in r["train_time_s"] if t is not None]
-        ttime = f"{max(times) / 60:.1f} min max" if times else ("reused" if r["seeds"] else "-")
+        ttime = f"{max(times) / 60:.1f} min max" if times else ("n/a" if r["seeds"] else "-")
         ci = "-" if math.isnan(r["gain_ci95"]) else f"{r['gain_ci95']:.2f}"  # one seed: none
         lines.append(f"| {r['policy']} | {r['objective'] or '-'} | {seeds} | "
                      f"{r['trips_mean']:.2f} | {r['queue_mean']:.2f} | "
@@ -240,7 +252,7 @@ def run(cfg: Config) -> list[dict[str, Any]]:
     write_csv(out / "table.csv", [{**r, "seeds": " ".join(map(str, r["seeds"])),
                                    "gain_per_seed": " ".join(f"{g:.4f}"
                                                              for g in r["gain_per_seed"]),
-                                   "train_time_s": " ".join(f"{t:.1f}" if t else "reused"
+                                   "train_time_s": " ".join(f"{t:.1f}" if t else "n/a"
                                                             for t in r["train_time_s"])}
                                   for r in rows], ROW_KEYS)
     write_json(out / "table.json", rows)
