@@ -45,7 +45,7 @@ quick: $(STAMP)  ## a first look at the main comparison in minutes (1 seed, shor
 policies: $(STAMP)  ## train the learned policies that are missing (no evaluation)
 	$(PY) -m fleet_torchrl.table table.evaluate=false $(ARGS)
 
-policy-maps: policies  ## action maps of rule, heuristic, tabular, DQN-partial -> results/policy_maps
+policy-maps: policies  ## action maps of rule, heuristic, tabular, DQN-partial, generalist, search -> results/policy_maps
 	$(TIMED) policy-maps -- $(PY) -m fleet_torchrl.policy_maps +experiment=policy_maps $(ARGS)
 
 sweep-pc: policies  ## generalisation sweep over p_c -> results/sweeps/pc.{csv,json,png}
