@@ -13,7 +13,9 @@ queue-aware heuristic except where the Q-network prefers the other action by mor
 ``agent.anchor_margin`` (in the Q-network's units, i.e. scaled rewards): the learner only
 overrides a strong baseline where it has learned a clear advantage, a baseline-constrained
 policy improvement (residual policy learning, SPIBB). With margin 0 it is the plain greedy
-policy; with an infinite margin, the heuristic. Exploration is epsilon-greedy around the
+policy (except on an exact tie of the two Q-values, where it takes the heuristic's action);
+with an infinite margin, the heuristic (the default one, its parameters saved with the
+policy). Exploration is epsilon-greedy around the
 anchored greedy policy; the Q-learning itself is unchanged (off-policy max backups).
 
 Semi-Markov discounting and n-step returns. Each stored transition carries
@@ -155,26 +157,33 @@ class DQNPolicy(Policy):
     map_tc_values = (0.0, 0.2, 0.4, 0.6, 0.8, 1.0)
 
     def __init__(self, network: NetworkConfig, n_obs: int, encoding: str,
-                 anchor: str = "none", anchor_margin: float = 0.0) -> None:
+                 anchor: str = "none", anchor_margin: float = 0.0,
+                 anchor_params: dict[str, float] | None = None) -> None:
         super().__init__()
         self.network, self.n_obs = network, n_obs
         self.qnet = make_qnet(network, n_obs)
         self.encoding = encoding
         self.name = f"dqn_{encoding}"
+        if anchor not in ANCHORS:
+            raise ValueError(f"anchor={anchor!r} is invalid: allowed one of {', '.join(ANCHORS)}")
         self.anchor, self.anchor_margin = anchor, float(anchor_margin)
-        if anchor != "none":
-            self.base = HeuristicPolicy()  # the default heuristic (MODEL §3)
+        if anchor != "none":  # the heuristic of MODEL §3, with its parameters fixed here
+            self.base = HeuristicPolicy(**(anchor_params or {}))
 
     def spec(self) -> dict[str, Any]:
         out = {"network": asdict(self.network), "n_obs": self.n_obs, "encoding": self.encoding}
         if self.anchor != "none":
-            out.update(anchor=self.anchor, anchor_margin=self.anchor_margin)
+            b = self.base
+            out.update(anchor=self.anchor, anchor_margin=self.anchor_margin,
+                       anchor_params={"threshold": b.threshold, "upper": b.upper,
+                                      "others_below": b.others_below})
         return out
 
     @classmethod
     def from_spec(cls, spec: dict[str, Any]) -> DQNPolicy:
         return cls(NetworkConfig(**spec["network"]), spec["n_obs"], spec["encoding"],
-                   spec.get("anchor", "none"), spec.get("anchor_margin", 0.0))
+                   spec.get("anchor", "none"), spec.get("anchor_margin", 0.0),
+                   spec.get("anchor_params"))
 
     def forward(self, obs: Tensor) -> Tensor:
         q = self.qnet(obs)

@@ -58,7 +58,7 @@ def summarize(records: dict[str, Tensor]) -> dict[str, float]:
 def site_strata(site_cfg: Any, n_sims: int, seed: int) -> dict[str, Tensor]:
     """The marginal strata of an evaluation set on a site distribution (MODEL §1.6): for each
     drawn parameter, one ``[n_sims]`` bool mask per value of an integer range of at most five
-    values, else per third of its range (``"t_c:10-23"``); a single site is one stratum,
+    values, else per third of its range (``"t_c:10-23.3333"``); a single site is one stratum,
     ``"all"``. Each simulation lies in one stratum per drawn parameter."""
     from ..sim import Site
 

@@ -81,7 +81,8 @@ def build(results: Path, out: Path) -> str:
         if info.exists():
             tt = read_json(info).get("train_time_s", {})
             parts += ["Training wall time per run: " + ", ".join(
-                f"{k} {v / 60:.1f} min" if v else f"{k} (n/a)" for k, v in tt.items()), ""]
+                f"{k} {v / 60:.1f} min" if v is not None else f"{k} (n/a)"
+                for k, v in tt.items()), ""]
         for name, title in (("boxplot.png", "box plot"),
                             ("learning_curves.png", "learning curves")):
             fig = results / "table" / name

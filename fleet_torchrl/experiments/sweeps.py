@@ -38,12 +38,14 @@ from typing import Any
 
 from ..agents import AGENTS, load_policies, load_policy_file
 from ..agents.base import Policy
+from ..agents.policy_files import POLICY_FILE
 from ..agents.registry import saved_policy_path
-from ..agents.search import SearchPolicy, cell_centres
+from ..agents.search import SearchPolicy, cell_centres, clone_policy
 from ..config import Config, compose_config
 from ..evaluation import evaluate_policy, evaluate_with, gain_over
 from ..sim import SiteConfig
 from ..training import Trainer, training_fingerprint
+from ..utils.checks import ConfigError
 from ..utils.runinfo import file_sha256, read_json, run_info, to_jsonable, write_json
 from .table import reusable
 
@@ -88,19 +90,27 @@ def on_selection_set(cfg: Config, run_cfg: Config, pol: Policy) -> tuple[float, 
     return res["failure_rate"], -res["trips_mean"]
 
 
+def best_known(keys: dict[str, tuple[float, float]]) -> str:
+    """The name with the best :func:`on_selection_set` key; ``"search"`` on a tie."""
+    return min(keys, key=lambda n: (keys[n], n != "search"))
+
+
 def search_start(cfg: Config, run_cfg: Config, policies: dict[str, Policy]) -> str:
     """The ``agent.init`` of the point's search: the ``partial``-state policy of the point
     whose start of the search (for the table class: its action table, what the search can
     represent of it) does best on the search's selection set, as a baseline's name or a
     saved policy's path."""
+    a = run_cfg.agent
     best: tuple[tuple[float, float], str] | None = None
     for name, pol in policies.items():
         if pol.encoding != "partial":
             continue
-        start = pol
-        if run_cfg.agent.policy_class == "table":
-            start = SearchPolicy("table")
-            start.charge.copy_(pol(cell_centres()).long())
+        start = SearchPolicy(a.policy_class, a.hidden, a.depth)  # what the search starts from
+        if a.policy_class == "table":
+            start.charge.copy_(pol(cell_centres().to(cfg.eval.device)).long().cpu())
+        else:
+            start.theta.copy_(clone_policy(pol.cpu(), start.sizes, run_cfg.seed, run_cfg.site))
+            pol.to(cfg.eval.device)
         key = on_selection_set(cfg, run_cfg, start)
         if best is None or key < best[0]:
             best = (key, name)
@@ -115,8 +125,9 @@ def search_start(cfg: Config, run_cfg: Config, policies: dict[str, Policy]) -> s
 def point_search(cfg: Config, run_cfg: Config, label: str) -> tuple[Policy, dict[str, Any]]:
     """The point's search policy (trained with ``run_cfg``, the point's
     :func:`search_config`, or reused when its settings and start match) and its summary."""
-    init = run_cfg.agent.init
-    start = file_sha256(init) if Path(init).is_file() else None
+    init = Path(run_cfg.agent.init)
+    init = init / POLICY_FILE if init.is_dir() else init
+    start = file_sha256(init) if init.is_file() else None
     out = Path(cfg.sweep.search_dir) / label / digest([training_fingerprint(run_cfg), start])
     run_cfg.train.out_dir = str(out)
     if not reusable(out, run_cfg):
@@ -155,6 +166,9 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
     param = cfg.sweep.param
     value = point_value(param, cfg.sweep.value)
     label = f"{param}={value}"
+    if cfg.site.randomized:
+        raise ConfigError(f"site={cfg.site.name!r} is a site distribution: a sweep varies "
+                          f"{param} of one site; run it on a single site (e.g. site=default)")
     site = replace(cfg.site, **{param: value}, name=label).validate()
     search_cfg = search_config(cfg, site) if cfg.sweep.search else None
     key = point_key(cfg, site, search_cfg)
@@ -182,7 +196,7 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
         # on the search's selection set (never on the evaluation's sites)
         keys = {name: on_selection_set(cfg, search_cfg, pol)
                 for name, pol in {"search": found, **policies}.items()}
-        optimum_from = min(keys, key=lambda n: (keys[n], n != "search"))
+        optimum_from = best_known(keys)
         policies[OPTIMUM] = found if optimum_from == "search" else policies[optimum_from]
         print(f"[sweep] {label}: the optimum is {optimum_from}'s policy "
               f"({-keys[optimum_from][1]:.1f} trips on the selection set, the search's "

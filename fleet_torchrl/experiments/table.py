@@ -120,17 +120,20 @@ def run_training(cmd: list[str]) -> float:
 
 
 def ensure_policies(cfg: Config) -> dict[tuple[str, int], float | None]:
-    """Train what is missing (``table.jobs`` at once); seconds per (name, seed): the run's
-    wall time, or for a reused policy the training time its summary records (None if it
-    records none)."""
+    """Train what is missing (``table.jobs`` at once); seconds per (name, seed): the training
+    time each policy's summary records, for a reused one too (a run just trained without a
+    summary falls back to its process's wall time; None if neither is known)."""
     todo = [(name, seed) for name in cfg.table.train for seed in training_seeds(cfg)]
     plans = {job: plan_training(*job, cfg) for job in todo}
     runs = [job for job in todo if plans[job] is not None]
     with ThreadPoolExecutor(max_workers=cfg.table.jobs) as pool:
         times = dict(zip(runs, pool.map(lambda job: run_training(plans[job]), runs),
                          strict=True))
-    return {job: times[job] if job in times else recorded_train_time(*job, cfg)
-            for job in todo}
+    out = {}
+    for job in todo:
+        rec = recorded_train_time(*job, cfg)
+        out[job] = rec if rec is not None else times.get(job)
+    return out
 
 
 def recorded_train_time(name: str, seed: int, cfg: Config) -> float | None:
@@ -252,7 +255,8 @@ def run(cfg: Config) -> list[dict[str, Any]]:
     write_csv(out / "table.csv", [{**r, "seeds": " ".join(map(str, r["seeds"])),
                                    "gain_per_seed": " ".join(f"{g:.4f}"
                                                              for g in r["gain_per_seed"]),
-                                   "train_time_s": " ".join(f"{t:.1f}" if t else "n/a"
+                                   "train_time_s": " ".join(f"{t:.1f}" if t is not None
+                                                            else "n/a"
                                                             for t in r["train_time_s"])}
                                   for r in rows], ROW_KEYS)
     write_json(out / "table.json", rows)

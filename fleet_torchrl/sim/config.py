@@ -11,7 +11,7 @@ MAX_NODES = 62  # occupancy of a site is one 64-bit mask
 
 @dataclass
 class SiteRanges:
-    """A distribution of sites (MODEL §1.5): each parameter given as ``[low, high]`` is drawn
+    """A distribution of sites (MODEL §1.6): each parameter given as ``[low, high]`` is drawn
     per site, uniformly (integers: every value of the range equally likely), as a pure
     function of ``(seed, site index)``; a parameter left ``None`` keeps the site's value."""
 

@@ -71,6 +71,10 @@ class ReferenceSite:
     """The tick rules of MODEL §1.2, one explicit numpy mask per rule."""
 
     def __init__(self, cfg: SiteConfig) -> None:
+        if cfg.randomized:
+            raise ValueError("the numpy reference simulates one site: a site distribution "
+                             "(site.ranges) is checked against single sites instead "
+                             "(tests/sim/test_distribution.py)")
         self.cfg = cfg
         self.n_nodes = cfg.n_nodes
         self.closed_node = cfg.closed_node

@@ -14,7 +14,8 @@ at the start of the tick, with a fixed number of tensor operations whatever ``B`
 
 1. the closure of ``X`` is an input (drawn by :meth:`Site.closures` from the common random
    numbers of :mod:`fleet_torchrl.sim.rng`);
-2. each vehicle's target is a table lookup indexed by ``pos + N * charge``; a vehicle with
+2. each vehicle's target is a table lookup indexed by ``pos + (N + 1) * charge`` (node ``N``
+   parks the vehicles a site of a distribution does not have, see below); a vehicle with
    charging ticks left has no target;
 3. a vehicle moves iff its target was empty at the start of the tick and is not ``X`` while
    ``X`` is closed. Occupancy is one 64-bit mask per site (bit ``k`` = node ``k``), with the
@@ -41,7 +42,7 @@ Choices the model leaves open (documented in docs/MODEL.md §1 as well):
 * Sites can be frozen with the ``active`` mask (failed sites in evaluation, sites waiting for
   a decision in the environment): a frozen site's state and counters do not change at all.
 
-A site *distribution* (``SiteConfig.ranges``, MODEL §1.5) gives every site of the batch its own
+A site *distribution* (``SiteConfig.ranges``, MODEL §1.6) gives every site of the batch its own
 ``N_V``, ``p_c`` and ``T_C``, drawn with its initial state from ``(seed, site index)``
 (:meth:`Site.draw_params`) and carried in :class:`SiteParams` inside the state. The state
 then holds the largest fleet of the range; the vehicles a site does not have are *parked* on
@@ -196,7 +197,7 @@ class Site:
 
     def draw_params(self, seed: int, site_idx: Tensor) -> SiteParams:
         """The parameters of each site of a distribution, a pure function of ``(seed, site
-        index)`` (MODEL §1.5): integers uniform on their range (a 32-bit draw modulo the
+        index)`` (MODEL §1.6): integers uniform on their range (a 32-bit draw modulo the
         range's size), ``p_c`` = low + u (high - low) with u on the 24-bit grid of [0, 1)."""
         cfg, r = self.cfg, self.ranges
         assert r is not None, "draw_params needs a site distribution (site.ranges)"

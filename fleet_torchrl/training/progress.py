@@ -42,8 +42,9 @@ class Progress:
     """Counters, early-stopping state and the evaluation history of one run.
 
     ``best`` is ``(failure rate, score)`` of the best evaluation so far: a lower failure
-    rate wins, then a higher score (the mean trips, or the objective's own score with
-    ``train.select=objective``, see :func:`selection_score`).
+    rate wins, then a higher score (the mean trips, the objective's own score with
+    ``train.select=objective``, or the worst stratum's gain over the heuristic with
+    ``robust``; see :func:`selection_score`).
     """
 
     round: int = 0

@@ -102,7 +102,7 @@ def test_anchored_policy_overrides_the_heuristic_only_by_a_clear_margin(tmp_path
     acts = {}
     for m in (0.0, 0.05, 1e9):
         pol = DQNPolicy(NetworkConfig(width=8, depth=1), 3, "partial", "heuristic", m)
-        pol.load_state_dict(plain.state_dict(), strict=False)
+        pol.load_state_dict(plain.state_dict())
         acts[m] = pol(obs)
         q = plain.qnet(obs)
         adv = q[:, 1] - q[:, 0]
@@ -113,11 +113,20 @@ def test_anchored_policy_overrides_the_heuristic_only_by_a_clear_margin(tmp_path
     assert torch.equal(acts[1e9], heur)
     assert not torch.equal(acts[0.05], heur) and not torch.equal(acts[0.05], acts[0.0])
     pol = DQNPolicy(NetworkConfig(width=8, depth=1), 3, "partial", "heuristic", 0.05)
-    pol.load_state_dict(plain.state_dict(), strict=False)
+    pol.load_state_dict(plain.state_dict())
     save_policy(tmp_path / "policy.pt", pol, "dqn")
     back = load_policy_file(tmp_path)
     assert back.anchor == "heuristic" and back.anchor_margin == 0.05
     assert torch.equal(back(obs), acts[0.05])
+    # the heuristic's parameters travel with the policy, not with the code's defaults
+    other = DQNPolicy(NetworkConfig(width=8, depth=1), 3, "partial", "heuristic", 1e9,
+                      {"threshold": 35.0, "upper": 70.0, "others_below": 100.0})
+    save_policy(tmp_path / "other" / "policy.pt", other, "dqn")
+    again = load_policy_file(tmp_path / "other")
+    assert again.base.threshold == 35.0 and again.base.upper == 70.0
+    assert torch.equal(again(obs), HeuristicPolicy(35.0, 70.0)(obs))
+    with pytest.raises(ValueError, match="anchor"):
+        DQNPolicy(NetworkConfig(width=8, depth=1), 3, "partial", "nope")
 
 
 def test_anchor_needs_a_state_the_heuristic_reads():

@@ -35,9 +35,35 @@ def test_search_starts_from_the_points_best_partial_policy(saved_policies):
     assert run_cfg.train.eval_sims == 8 and run_cfg.site.p_c == 0.8
     pols = load_policies(cfg, ["rule", "heuristic", "dqn_partial"])
     assert search_start(cfg, run_cfg, pols) == "heuristic"
-    pols.pop("heuristic")
-    rule_or_net = search_start(cfg, run_cfg, pols)
-    assert rule_or_net in ("rule", str(saved_policies / "dqn_partial" / "policy.pt"))
+    # a saved policy that acts as the heuristic beats the rule: it is named by its file
+    from fleet_torchrl.agents import HeuristicPolicy, save_policy
+    from fleet_torchrl.agents.search import SearchPolicy, cell_centres
+
+    good = SearchPolicy("table")
+    good.charge.copy_(HeuristicPolicy()(cell_centres()))
+    save_policy(saved_policies / "good" / "policy.pt", good, "search")
+    pols = load_policies(cfg, ["rule", "good"])
+    assert search_start(cfg, run_cfg, pols) == str(saved_policies / "good" / "policy.pt")
+
+
+def test_the_optimum_is_the_best_known_policy_on_the_selection_set():
+    from fleet_torchrl.experiments.sweeps import best_known
+
+    # keys: (failure rate, -mean trips), lower is better; the search wins a tie
+    assert best_known({"search": (0.0, -100.0), "dqn": (0.0, -101.0)}) == "dqn"
+    assert best_known({"search": (0.0, -100.0), "dqn": (0.0, -100.0)}) == "search"
+    assert best_known({"search": (0.0, -100.0), "dqn": (0.01, -120.0)}) == "search"
+    assert best_known({"heuristic": (0.0, -99.0), "search": (0.0, -99.5)}) == "search"
+
+
+def test_a_sweep_on_a_site_distribution_is_refused():
+    from fleet_torchrl.config import compose_config
+    from fleet_torchrl.experiments.sweeps import run_point
+    from fleet_torchrl.utils.checks import ConfigError
+
+    cfg = compose_config(["site=randomized", "+experiment=sweep_pc", "sweep.value=0.4"])
+    with pytest.raises(ConfigError, match="site distribution"):
+        run_point(cfg)
 
 
 @pytest.mark.slow
