@@ -65,11 +65,17 @@ class SweepConfig:
     # cached under search_dir by its training settings; [] of overrides = the search defaults
     search: bool = True
     search_seeded: bool = True  # start it from the point's best partial-state policy
+    # the set the optimum row is picked on (the search's selection seed, apart from eval.seed):
+    # its policy or a better one of sweep.policies; larger than the search's own set
+    pick_sims: int = 1000
+    pick_ticks: int = 10_000
     search_overrides: list[str] = field(default_factory=list)
     search_dir: str = "results/search"
 
     def validate(self, known: tuple[str, ...], path: str = "sweep") -> SweepConfig:
         check_choice(f"{path}.param", self.param, SWEEP_PARAMS)
+        check_range(f"{path}.pick_sims", self.pick_sims, 1, 10**7)
+        check_range(f"{path}.pick_ticks", self.pick_ticks, 1, 10**8)
         for i, o in enumerate(self.search_overrides):
             key = o.split("=", 1)[0].lstrip("+~")
             if key.split(".")[0] not in ("agent", "train", "seed") or key in ("agent",

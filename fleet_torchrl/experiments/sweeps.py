@@ -82,11 +82,11 @@ def search_config(cfg: Config, site: SiteConfig) -> Config:
 
 
 def on_selection_set(cfg: Config, run_cfg: Config, pol: Policy) -> tuple[float, float]:
-    """``(failure rate, -mean trips)`` of a policy on the point search's selection set
-    (``train.eval_*`` of the search, apart from the evaluation's sites): lower is better."""
-    t = run_cfg.train
-    res = evaluate_policy(pol, run_cfg.site, t.eval_sims, t.eval_ticks, t.eval_seed,
-                          cfg.eval.device)
+    """``(failure rate, -mean trips)`` of a policy on the point's pick set: the search's
+    selection seed (``train.eval_seed``, apart from the evaluation's sites) with
+    ``sweep.pick_sims`` x ``sweep.pick_ticks``; lower is better."""
+    res = evaluate_policy(pol, run_cfg.site, cfg.sweep.pick_sims, cfg.sweep.pick_ticks,
+                          run_cfg.train.eval_seed, cfg.eval.device)
     return res["failure_rate"], -res["trips_mean"]
 
 
@@ -147,6 +147,7 @@ def point_key(cfg: Config, site: SiteConfig, search_cfg: Config | None) -> str:
     if search_cfg is not None:
         parts["search"] = training_fingerprint(search_cfg)
         parts["search_seeded"] = cfg.sweep.search_seeded
+        parts["pick"] = [cfg.sweep.pick_sims, cfg.sweep.pick_ticks]
         parts["optimum"] = "best of the search and the policies on its selection set"
     return digest(parts)
 

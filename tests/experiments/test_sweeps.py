@@ -17,6 +17,7 @@ from fleet_torchrl import sweeps_summary
 TINY_SEARCH = "sweep.search_overrides=[" + ",".join(f"'{o}'" for o in (
     "agent.generations=2", "agent.population=4", "agent.elite=1", "agent.sites=4",
     "agent.ticks=300", "train.eval_sims=8", "train.eval_ticks=300")) + "]"
+TINY_PICK = ["sweep.pick_sims=8", "sweep.pick_ticks=300"]
 
 
 def test_search_starts_from_the_points_best_partial_policy(saved_policies):
@@ -29,7 +30,7 @@ def test_search_starts_from_the_points_best_partial_policy(saved_policies):
     from fleet_torchrl.config import compose_config
     from fleet_torchrl.experiments.sweeps import search_config, search_start
 
-    cfg = compose_config([f"table.policies_dir={saved_policies}", TINY_SEARCH])
+    cfg = compose_config([f"table.policies_dir={saved_policies}", TINY_SEARCH, *TINY_PICK])
     site = replace(cfg.site, p_c=0.8)
     run_cfg = search_config(cfg, site)
     assert run_cfg.train.eval_sims == 8 and run_cfg.site.p_c == 0.8
@@ -73,7 +74,7 @@ def test_miniature_sweep_end_to_end(tmp_path, saved_policies):
     cmd = [sys.executable, "-m", "fleet_torchrl.sweeps", "-m", "+experiment=sweep_pc",
            "sweep.value=0.4,0.8", "eval.n_sims=16", "eval.ticks=400",
            "sweep.policies=[rule,heuristic,tabular,dqn_partial]",
-           f"table.policies_dir={root}", f"sweep.out={out}", TINY_SEARCH,
+           f"table.policies_dir={root}", f"sweep.out={out}", TINY_SEARCH, *TINY_PICK,
            f"sweep.search_dir={tmp_path / 'search'}",
            f"hydra.sweep.dir={tmp_path / 'multirun'}"]
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
