@@ -52,6 +52,9 @@ from .table import reusable
 POINT_FIELDS = ("param", "value", "policy", "trips_mean", "trips_std", "queue_mean",
                 "failure_rate", "gain_pct", "gain_ci95", "share_of_optimum_pct")
 OPTIMUM = "optimum"  # the row of the point's own direct policy search
+# the point's search among the candidates for that row (not "search": that name is the
+# default-site search policy of sweep.policies)
+POINT_SEARCH = "point_search"
 
 
 def digest(obj: Any) -> str:
@@ -91,8 +94,9 @@ def on_selection_set(cfg: Config, run_cfg: Config, pol: Policy) -> tuple[float, 
 
 
 def best_known(keys: dict[str, tuple[float, float]]) -> str:
-    """The name with the best :func:`on_selection_set` key; ``"search"`` on a tie."""
-    return min(keys, key=lambda n: (keys[n], n != "search"))
+    """The name with the best :func:`on_selection_set` key; the point's own search
+    (:data:`POINT_SEARCH`) on a tie."""
+    return min(keys, key=lambda n: (keys[n], n != POINT_SEARCH))
 
 
 def search_start(cfg: Config, run_cfg: Config, policies: dict[str, Policy]) -> str:
@@ -148,7 +152,7 @@ def point_key(cfg: Config, site: SiteConfig, search_cfg: Config | None) -> str:
         parts["search"] = training_fingerprint(search_cfg)
         parts["search_seeded"] = cfg.sweep.search_seeded
         parts["pick"] = [cfg.sweep.pick_sims, cfg.sweep.pick_ticks]
-        parts["optimum"] = "best of the search and the policies on its selection set"
+        parts["optimum"] = "best of the point's search and the policies on the pick set"
     return digest(parts)
 
 
@@ -196,12 +200,12 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
         # the optimum: what the search found, unless a policy it competes with does better
         # on the search's selection set (never on the evaluation's sites)
         keys = {name: on_selection_set(cfg, search_cfg, pol)
-                for name, pol in {"search": found, **policies}.items()}
+                for name, pol in {POINT_SEARCH: found, **policies}.items()}
         optimum_from = best_known(keys)
-        policies[OPTIMUM] = found if optimum_from == "search" else policies[optimum_from]
+        policies[OPTIMUM] = found if optimum_from == POINT_SEARCH else policies[optimum_from]
         print(f"[sweep] {label}: the optimum is {optimum_from}'s policy "
               f"({-keys[optimum_from][1]:.1f} trips on the selection set, the search's "
-              f"{-keys['search'][1]:.1f})", flush=True)
+              f"{-keys[POINT_SEARCH][1]:.1f})", flush=True)
     results = {name: evaluate_with(pol, site, e, name=name) for name, pol in policies.items()}
     rule = results.get("rule")
     rows = []

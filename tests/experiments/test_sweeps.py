@@ -48,13 +48,16 @@ def test_search_starts_from_the_points_best_partial_policy(saved_policies):
 
 
 def test_the_optimum_is_the_best_known_policy_on_the_selection_set():
-    from fleet_torchrl.experiments.sweeps import best_known
+    from fleet_torchrl.experiments.sweeps import POINT_SEARCH, best_known
 
-    # keys: (failure rate, -mean trips), lower is better; the search wins a tie
-    assert best_known({"search": (0.0, -100.0), "dqn": (0.0, -101.0)}) == "dqn"
-    assert best_known({"search": (0.0, -100.0), "dqn": (0.0, -100.0)}) == "search"
-    assert best_known({"search": (0.0, -100.0), "dqn": (0.01, -120.0)}) == "search"
-    assert best_known({"heuristic": (0.0, -99.0), "search": (0.0, -99.5)}) == "search"
+    # keys: (failure rate, -mean trips), lower is better; the point's search wins a tie
+    own = POINT_SEARCH
+    assert own != "search"  # "search" is the default-site search of sweep.policies
+    assert best_known({own: (0.0, -100.0), "dqn": (0.0, -101.0)}) == "dqn"
+    assert best_known({own: (0.0, -100.0), "dqn": (0.0, -100.0)}) == own
+    assert best_known({"dqn": (0.0, -100.0), own: (0.0, -100.0)}) == own
+    assert best_known({own: (0.0, -100.0), "dqn": (0.01, -120.0)}) == own
+    assert best_known({"heuristic": (0.0, -99.0), own: (0.0, -99.5)}) == own
 
 
 def test_a_sweep_on_a_site_distribution_is_refused():
@@ -73,7 +76,7 @@ def test_miniature_sweep_end_to_end(tmp_path, saved_policies):
     out = tmp_path / "sweeps"
     cmd = [sys.executable, "-m", "fleet_torchrl.sweeps", "-m", "+experiment=sweep_pc",
            "sweep.value=0.4,0.8", "eval.n_sims=16", "eval.ticks=400",
-           "sweep.policies=[rule,heuristic,tabular,dqn_partial]",
+           "sweep.policies=[rule,heuristic,tabular,dqn_partial,search]",
            f"table.policies_dir={root}", f"sweep.out={out}", TINY_SEARCH, *TINY_PICK,
            f"sweep.search_dir={tmp_path / 'search'}",
            f"hydra.sweep.dir={tmp_path / 'multirun'}"]
@@ -84,8 +87,9 @@ def test_miniature_sweep_end_to_end(tmp_path, saved_policies):
     rows = list(csv.DictReader((out / "pc.csv").open()))
     assert set(rows[0]) == {"param", "value", "policy", "trips_mean", "trips_std", "queue_mean",
                             "failure_rate", "gain_pct", "gain_ci95", "share_of_optimum_pct"}
-    assert len(rows) == 10 and {r["policy"] for r in rows} == {"rule", "heuristic", "tabular",
-                                                               "dqn_partial", "optimum"}
+    assert len(rows) == 12 and {r["policy"] for r in rows} == {"rule", "heuristic", "tabular",
+                                                               "dqn_partial", "search",
+                                                               "optimum"}
     assert all(float(r["gain_pct"]) == 0.0 for r in rows if r["policy"] == "rule")
     for r in rows:  # the share is the gain over the optimum's gain, where that is positive
         best = next(float(o["gain_pct"]) for o in rows
@@ -103,8 +107,11 @@ def test_miniature_sweep_end_to_end(tmp_path, saved_policies):
     assert point["search"]["init"] in ("rule", "heuristic", str(root / "tabular" / "policy.pt"),
                                        str(root / "dqn_partial" / "policy.pt"))
     # the optimum row is the search's policy or the best policy on its selection set
-    assert point["search"]["optimum_from"] in ("search", "rule", "heuristic", "tabular",
-                                               "dqn_partial")
+    src = point["search"]["optimum_from"]
+    assert src in ("point_search", "rule", "heuristic", "tabular", "dqn_partial", "search")
+    trips = {r["policy"]: r["trips_mean"] for r in point["rows"]}
+    if src != "point_search":  # the row is that policy's, evaluated on the same sites
+        assert trips["optimum"] == trips[src]
     # a rerun skips the finished points; a point that cannot run is reported, not fatal
     r2 = subprocess.run(cmd[:5] + ["sweep.value=0.8"] + cmd[6:], capture_output=True,
                         text=True, timeout=300)
