@@ -46,12 +46,14 @@ Besides ``observation`` the environment reports per-episode counters ``trips``,
 
 from __future__ import annotations
 
+from dataclasses import fields
+
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from ..sim import Site, SiteConfig, TickOutcome, rng
+from ..sim import Site, SiteConfig, SiteParams, TickOutcome, rng
 from ..sim import fused as _fused
 from .config import MDPConfig
 from .encodings import get_encoding
@@ -191,7 +193,7 @@ class FleetChargingEnv(EnvBase):
     # ------------------------------------------------------------------ checkpoints
     _DYNAMIC = ("pos", "soc", "left", "charge", "tick")
 
-    _PARAMS = ("n_vehicles", "t_c", "gain", "closure", "p_c")
+    _PARAMS = tuple(f.name for f in fields(SiteParams))  # a distribution's per-site draws
 
     def state_dict(self, *args, **kwargs):
         sd = super().state_dict(*args, **kwargs)

@@ -15,6 +15,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from ..sim import Site
 from ..utils.runinfo import csv_text, file_sha256, read_json, write_json, write_text
 
 Z95 = 1.959963984540054
@@ -60,8 +61,6 @@ def site_strata(site_cfg: Any, n_sims: int, seed: int) -> dict[str, Tensor]:
     drawn parameter, one ``[n_sims]`` bool mask per value of an integer range of at most five
     values, else per third of its range (``"t_c:10-23.3333"``); a single site is one stratum,
     ``"all"``. Each simulation lies in one stratum per drawn parameter."""
-    from ..sim import Site
-
     if not site_cfg.randomized:
         return {"all": torch.ones(n_sims, dtype=torch.bool)}
     p = Site(site_cfg).draw_params(seed, torch.arange(n_sims))

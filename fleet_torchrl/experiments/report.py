@@ -106,8 +106,8 @@ def build(results: Path, out: Path) -> str:
               "Policies trained on the default site and the `generalist` (trained on the "
               "site distribution, MODEL §3.5), evaluated on changed sites, beside `optimum`: "
               "the direct policy search (MODEL §3.4) run on the point's own site from the "
-              "point's best policy, or the policy that beats it on the search's selection "
-              "set. "
+              "point's best policy, or the policy that beats it on the point's pick set "
+              "(sites apart from the evaluation's). "
               "Cells: trips gain over the rule in % ± 95% CI, in brackets the share of the "
               "optimum's gain, and the failure rate when not zero.", ""]
     for name, label in SWEEPS:

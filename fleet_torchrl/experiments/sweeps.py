@@ -9,15 +9,16 @@ sweep.value``) with the evaluation protocol (``eval.n_sims`` x ``eval.ticks``, c
 numbers: all policies of a point see the same sites). With ``sweep.search`` (default) it also
 runs the direct policy search (``agent=search``, MODEL §3.4) on the point's own site and
 evaluates what it found as the row ``optimum``; every row then reports its share of the
-optimum's gain over the rule. With ``sweep.search_seeded`` (default) the search starts from
-the best ``partial``-state policy of ``sweep.policies`` at the point, judged on the search's
-own selection set (``train.eval_*``, never the evaluation's sites), so the optimum begins at
-the best policy known there and the search improves on it. The row ``optimum`` is what the
-search found, unless one of the policies it competes with does better on that selection
-set: the best policy known at the point, chosen without the evaluation's sites (the JSON's
-``search.optimum_from`` says which). A search is cached under
-``sweep.search_dir/<point>/<key>``, ``key`` a hash of its training settings and of the policy
-it starts from, and reused whenever they match.
+optimum's gain over the rule. Policies are compared on the point's *pick set*: the search's
+selection seed (``train.eval_seed``, never the evaluation's sites) with ``sweep.pick_sims``
+x ``sweep.pick_ticks``. With ``sweep.search_seeded`` (default) the search starts from the
+``partial``-state policy of ``sweep.policies`` whose start (for the table class, its action
+table) does best on the pick set, so the optimum begins at the best policy known there and
+the search improves on it. The row ``optimum`` is what the search found, unless one of the
+policies it competes with does better on the pick set: the best policy known at the point,
+chosen without the evaluation's sites (the JSON's ``search.optimum_from`` says which). A
+search is cached under ``sweep.search_dir/<point>/<key>``, ``key`` a hash of its training
+settings and of the policy it starts from, and reused whenever they match.
 
 The point's file ``results/sweeps/<name>/<param>=<value>.json`` is written atomically and
 records a key of everything it depends on (the site, the evaluation settings, each policy's
@@ -84,7 +85,7 @@ def search_config(cfg: Config, site: SiteConfig) -> Config:
     return run_cfg
 
 
-def on_selection_set(cfg: Config, run_cfg: Config, pol: Policy) -> tuple[float, float]:
+def on_pick_set(cfg: Config, run_cfg: Config, pol: Policy) -> tuple[float, float]:
     """``(failure rate, -mean trips)`` of a policy on the point's pick set: the search's
     selection seed (``train.eval_seed``, apart from the evaluation's sites) with
     ``sweep.pick_sims`` x ``sweep.pick_ticks``; lower is better."""
@@ -94,7 +95,7 @@ def on_selection_set(cfg: Config, run_cfg: Config, pol: Policy) -> tuple[float, 
 
 
 def best_known(keys: dict[str, tuple[float, float]]) -> str:
-    """The name with the best :func:`on_selection_set` key; the point's own search
+    """The name with the best :func:`on_pick_set` key; the point's own search
     (:data:`POINT_SEARCH`) on a tie."""
     return min(keys, key=lambda n: (keys[n], n != POINT_SEARCH))
 
@@ -102,7 +103,7 @@ def best_known(keys: dict[str, tuple[float, float]]) -> str:
 def search_start(cfg: Config, run_cfg: Config, policies: dict[str, Policy]) -> str:
     """The ``agent.init`` of the point's search: the ``partial``-state policy of the point
     whose start of the search (for the table class: its action table, what the search can
-    represent of it) does best on the search's selection set, as a baseline's name or a
+    represent of it) does best on the point's pick set, as a baseline's name or a
     saved policy's path."""
     a = run_cfg.agent
     best: tuple[tuple[float, float], str] | None = None
@@ -115,7 +116,7 @@ def search_start(cfg: Config, run_cfg: Config, policies: dict[str, Policy]) -> s
         else:
             start.theta.copy_(clone_policy(pol.cpu(), start.sizes, run_cfg.seed, run_cfg.site))
             pol.to(cfg.eval.device)
-        key = on_selection_set(cfg, run_cfg, start)
+        key = on_pick_set(cfg, run_cfg, start)
         if best is None or key < best[0]:
             best = (key, name)
     if best is None:
@@ -198,13 +199,13 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
                   flush=True)
         found, search_summary = point_search(cfg, search_cfg, label)
         # the optimum: what the search found, unless a policy it competes with does better
-        # on the search's selection set (never on the evaluation's sites)
-        keys = {name: on_selection_set(cfg, search_cfg, pol)
+        # on the pick set (never on the evaluation's sites)
+        keys = {name: on_pick_set(cfg, search_cfg, pol)
                 for name, pol in {POINT_SEARCH: found, **policies}.items()}
         optimum_from = best_known(keys)
         policies[OPTIMUM] = found if optimum_from == POINT_SEARCH else policies[optimum_from]
         print(f"[sweep] {label}: the optimum is {optimum_from}'s policy "
-              f"({-keys[optimum_from][1]:.1f} trips on the selection set, the search's "
+              f"({-keys[optimum_from][1]:.1f} trips on the pick set, the search's "
               f"{-keys[POINT_SEARCH][1]:.1f})", flush=True)
     results = {name: evaluate_with(pol, site, e, name=name) for name, pol in policies.items()}
     rule = results.get("rule")

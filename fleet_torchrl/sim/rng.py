@@ -60,12 +60,13 @@ def combine_below(ha: Tensor, hb: Tensor, p: float) -> Tensor:
     costs one mix per element instead of one per coordinate; the comparison is on the 32-bit
     integer (``h < p * 2**32``), exact on every device.
     """
-    return _mix(ha ^ hb) < int(round(p * (1 << 32)))
+    return mix_below(ha, hb, int(round(p * (1 << 32))))
 
 
-def mix_below(ha: Tensor, hb: Tensor, threshold: Tensor) -> Tensor:
-    """:func:`combine_below` with an integer threshold per element (broadcast): the draw is
-    ``mix(ha ^ hb) < threshold``, so ``threshold = round(p * 2**32)`` is Bernoulli(p)."""
+def mix_below(ha: Tensor, hb: Tensor, threshold: Tensor | int) -> Tensor:
+    """:func:`combine_below` with an integer threshold, one for all or one per element
+    (broadcast): the draw is ``mix(ha ^ hb) < threshold``, so ``threshold = round(p * 2**32)``
+    is Bernoulli(p)."""
     return _mix(ha ^ hb) < threshold
 
 

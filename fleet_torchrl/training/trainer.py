@@ -374,8 +374,8 @@ class Trainer:
             hparams = {k: asdict(getattr(c, k)) for k in TRAINING_GROUPS}
             self.monitor.hparams({**hparams, "seed": c.seed},
                                  {"hparam/eval_trips": best["trips"],
-                                             "hparam/gain_pct": best["gain_pct"],
-                                             "hparam/failure_rate": best["failure_rate"]})
+                                  "hparam/gain_pct": best["gain_pct"],
+                                  "hparam/failure_rate": best["failure_rate"]})
         self.monitor.close()
         return summary
 
