@@ -6,9 +6,11 @@ Measures, for batch sizes ``B`` in {1, 64, 1024, 8192} (median of ``--repeats`` 
 * ``eval``: the evaluation loop with the rule policy deciding in the loop, site-ticks/s;
 * ``env``: TorchRL environment steps (decision epochs) per second with the rule policy;
 
-``eval`` and ``env`` with the eager tick loop and with the fused kernel (sim/fused.py, CPU);
-and the wall time of the thesis protocol for one policy (1000 sims x 10 000 ticks): eager,
-fused and the numpy reference, as ratios to the reference, with the compile time apart.
+``eval`` and ``env`` with the eager tick loop and with the compiled kernel (sim/kernel.py via
+sim/fused.py; numba on every CPU core, or CUDA); ``kernel``: one kernel call with the rule
+deciding inside it (site-ticks/s); and the wall time of the thesis protocol for one policy
+(1000 sims x 10 000 ticks): eager, fused and the numpy reference, as ratios to the
+reference, with the compile time apart.
 Results print as Markdown (paste into docs/BENCHMARKS.md) and, with ``--out``, as JSON.
 """
 
@@ -23,6 +25,7 @@ from .experiments.bench import (
     bench_env,
     bench_env_reference,
     bench_eval,
+    bench_kernel,
     bench_protocol,
     bench_sim,
     bench_training,
@@ -45,7 +48,7 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--out", default=None, help="also write the figures as JSON")
     a = p.parse_args(argv)
 
-    has_fused = torch.device(a.device).type == "cpu" and fused.available()
+    has_fused = fused.available(a.device)
     rows = []
     for b in a.batches:
         ticks = int(min(10_000, max(200, a.site_ticks / b)))
@@ -64,9 +67,11 @@ def main(argv: list[str] | None = None) -> dict:
         if has_fused:
             t_eval_f = bench_eval(b, ticks, a.repeats, a.device, use_fused=True)
             t_env_f = bench_env(b, steps, env_repeats, a.device, use_fused=True)
+            t_kernel = bench_kernel(b, ticks, a.repeats, a.device)
             r.update(eval_fused_site_ticks_per_s=b * ticks / t_eval_f,
                      env_fused_steps_per_s=steps / t_env_f,
-                     env_fused_site_steps_per_s=b * steps / t_env_f)
+                     env_fused_site_steps_per_s=b * steps / t_env_f,
+                     kernel_site_ticks_per_s=b * ticks / t_kernel)
         rows.append(r)
         fast = (f" (fused {r['eval_fused_site_ticks_per_s'] / 1e6:6.2f})" if has_fused else "",
                 f" (fused {r['env_fused_site_steps_per_s']:9.0f})" if has_fused else "")
@@ -78,29 +83,30 @@ def main(argv: list[str] | None = None) -> dict:
               f"{r['env_site_steps_per_s']:9.0f}{fast[1]} decisions/s", flush=True)
     result = {"machine": {"platform": platform.platform(), "cpus": torch.get_num_threads(),
                           "device": a.device}, "packages": package_versions(), "rows": rows}
-    if not a.skip_protocol and fused.available():  # the protocol on the CPU
+    if not a.skip_protocol:  # the protocol on the CPU
         t = bench_protocol(max(1, a.repeats // 2 + 1))
         result["protocol_1000x10000_s"] = t
         ref = t["reference"]
         print(f"thesis protocol (rule, 1000 sims x 10 000 ticks, CPU): numpy reference "
               f"{ref:.2f} s | eager {t['eager']:.2f} s ({t['eager'] / ref:.3f} x reference) "
-              f"| fused {t['fused']:.3f} s ({t['fused'] / ref:.3f} x reference, "
-              f"{t['eager'] / t['fused']:.1f}x faster than eager) | compile once "
+              f"| fused {t['fused']:.3f} s ({ref / t['fused']:.1f}x faster than the reference, "
+              f"{t['eager'] / t['fused']:.1f}x than eager) | compile once "
               f"{t['compile']:.2f} s")
-    print("\n| B | sim ticks/s | sim M site-ticks/s | eval M site-ticks/s (rule in loop) "
-          "eager / fused | env decisions/s numpy reference / eager / fused |\n"
-          "|---:|---:|---:|---:|---:|")
+    print("\n| B | sim ticks/s | sim M site-ticks/s | eval M site-ticks/s (rule) "
+          "eager / fused | kernel M site-ticks/s | env decisions/s numpy reference / eager / "
+          "fused |\n|---:|---:|---:|---:|---:|---:|")
     for r in rows:
         ev_f = f"{r['eval_fused_site_ticks_per_s'] / 1e6:.2f}" if has_fused else "-"
         env_f = f"{r['env_fused_site_steps_per_s']:.0f}" if has_fused else "-"
+        ker = f"{r['kernel_site_ticks_per_s'] / 1e6:.2f}" if has_fused else "-"
         print(f"| {r['B']} | {r['sim_ticks_per_s']:.0f} | {r['sim_site_ticks_per_s'] / 1e6:.2f} | "
-              f"{r['eval_site_ticks_per_s'] / 1e6:.2f} / {ev_f} | "
+              f"{r['eval_site_ticks_per_s'] / 1e6:.2f} / {ev_f} | {ker} | "
               f"{r['env_reference_site_steps_per_s']:.0f} / {r['env_site_steps_per_s']:.0f} / "
               f"{env_f} |")
     if "protocol_1000x10000_s" in result:
         t = result["protocol_1000x10000_s"]
         print("\n| thesis protocol (CPU) | wall s | x numpy reference |\n|---|---:|---:|")
-        for k in ("reference", "eager", "fused", "fused_randomized"):
+        for k in ("reference", "eager", "fused_stepwise", "fused", "fused_randomized"):
             print(f"| {k} | {t[k]:.3f} | {t[k] / t['reference']:.3f} |")
         print(f"| fused: compile once | {t['compile']:.2f} | |")
     if not a.skip_training:

@@ -21,12 +21,14 @@ def site() -> Site:
 def make_state():
     """Builder of one site from ``(node, soc[, charging ticks left])`` per vehicle."""
 
-    def build(vehicles: list[tuple], charge: bool = False, tick: int = 0) -> SiteState:
+    def build(vehicles: list[tuple], charge: bool = False, tick: int = 0,
+              site: Site | None = None) -> SiteState:
         pos = torch.tensor([[v[0]] for v in vehicles], dtype=torch.int64)
         soc = torch.tensor([[float(v[1])] for v in vehicles], dtype=torch.float32)
         left = torch.tensor([[v[2] if len(v) > 2 else 0] for v in vehicles], dtype=torch.int64)
-        return SiteState(pos=pos, soc=soc, left=left, charge=torch.tensor([charge]),
-                         tick=torch.tensor([tick]))
+        site = site or Site(SiteConfig(n_vehicles=len(vehicles)))
+        return site.state(
+            pos, soc, left, torch.tensor([charge]), torch.tensor([tick]))
 
     return build
 

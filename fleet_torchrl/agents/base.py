@@ -23,6 +23,8 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
 from torch import Tensor, nn
 
+from ..sim.fused import KernelPolicy
+
 if TYPE_CHECKING:
     from ..config import Config
 
@@ -65,6 +67,13 @@ class Policy(nn.Module):
     def spec(self) -> dict[str, Any]:
         """Constructor arguments a policy file stores to rebuild this policy (JSON-ready)."""
         return {}
+
+    def kernel_policy(self) -> KernelPolicy | None:
+        """The same decisions as :meth:`forward`, taken inside the compiled kernel (the
+        rule, the heuristic, threshold policies, action tables over the ``partial`` state;
+        tests check every one against ``forward``), or ``None``: the simulation then
+        stops at each decision epoch for a batched forward pass (networks)."""
+        return None
 
     @classmethod
     def from_spec(cls, spec: dict[str, Any]) -> Policy:

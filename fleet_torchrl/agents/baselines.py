@@ -8,8 +8,10 @@ from typing import Any
 
 from torch import Tensor
 
+from ..sim.fused import KernelPolicy
 from ..utils.checks import check_range
 from .base import AgentConfig, Policy
+from .threshold import threshold_kernel_policy
 
 
 @dataclass
@@ -61,6 +63,11 @@ class RulePolicy(Policy):
     def forward(self, obs: Tensor) -> Tensor:
         return (obs[..., 0] <= self.threshold / 100.0).long()
 
+    def kernel_policy(self) -> KernelPolicy | None:
+        if self.encoding != "partial":
+            return None
+        return threshold_kernel_policy(low=self.threshold)
+
 
 class HeuristicPolicy(Policy):
     """Queue-aware baseline on the ``partial`` encoding.
@@ -94,3 +101,8 @@ class HeuristicPolicy(Policy):
         if self.others_below < 100.0:
             early &= others <= self.others_below / 100.0
         return (early | (soc_d <= self.threshold / 100.0)).long()
+
+    def kernel_policy(self) -> KernelPolicy:
+        return threshold_kernel_policy(
+            low=self.threshold, free_upper=self.upper, margin=0.0,
+            others_below=self.others_below if self.others_below < 100.0 else None)

@@ -46,10 +46,11 @@ from torch import Tensor
 from ..env.encodings import get_encoding
 from ..sim import SiteConfig
 from ..sim import rng as _rng
+from ..sim.fused import TABLE, KernelPolicy
 from ..sim.rollout import run_sites
 from ..utils.checks import ConfigError, check_choice, check_range
 from .base import AgentConfig, Learner, Policy
-from .tabular import N_STATES, state_index
+from .tabular import N_SOC_BINS, n_cells, state_index
 
 POLICY_CLASSES = ("table", "mlp")
 INITS = ("rule", "heuristic", "uniform")
@@ -72,6 +73,7 @@ class SearchAgentConfig(AgentConfig):
     init: str = "heuristic"  # starting policy: rule | heuristic | uniform | a saved policy's
     # path (table: its actions, mlp: a clone of it)
     p_min: float = 0.15  # table: charge probabilities stay in [p_min, 1 - p_min]
+    tc_bins: int = 2  # table: charger bins (free, then tc_bins - 1 shares of its busy time)
     hidden: int = 16  # mlp: units per hidden layer
     depth: int = 2  # mlp: hidden layers
     sigma_init: float = 1.0  # mlp: initial standard deviation of every weight
@@ -97,6 +99,7 @@ class SearchAgentConfig(AgentConfig):
                                   f"{', '.join(INITS)} or the path of a saved policy "
                                   "(policy.pt or its folder) that exists")
         check_range(f"{path}.p_min", self.p_min, 0.0, 0.49, allowed="[0, 0.49]")
+        check_range(f"{path}.tc_bins", self.tc_bins, 2, 64)
         check_range(f"{path}.hidden", self.hidden, 1, 4096)
         check_range(f"{path}.depth", self.depth, 0, 16)
         check_range(f"{path}.sigma_init", self.sigma_init, 1e-6, 100.0)
@@ -148,11 +151,13 @@ class SearchPolicy(Policy):
     name = "search"
     encoding = "partial"
 
-    def __init__(self, policy_class: str = "table", hidden: int = 16, depth: int = 2) -> None:
+    def __init__(self, policy_class: str = "table", hidden: int = 16, depth: int = 2,
+                 n_tc: int = 2) -> None:
         super().__init__()
         self.policy_class, self.hidden, self.depth = policy_class, hidden, depth
+        self.n_tc = n_tc
         if policy_class == "table":
-            self.register_buffer("charge", torch.zeros(N_STATES, dtype=torch.int64))
+            self.register_buffer("charge", torch.zeros(n_cells(n_tc), dtype=torch.int64))
         elif policy_class == "mlp":
             self.sizes = mlp_sizes(hidden, depth)
             self.register_buffer("theta", torch.zeros(mlp_n_params(self.sizes)))
@@ -161,7 +166,8 @@ class SearchPolicy(Policy):
                              f"{', '.join(POLICY_CLASSES)}")
 
     def spec(self) -> dict[str, Any]:
-        return {"policy_class": self.policy_class, "hidden": self.hidden, "depth": self.depth}
+        return {"policy_class": self.policy_class, "hidden": self.hidden, "depth": self.depth,
+                "n_tc": self.n_tc}
 
     def params(self) -> Tensor:
         """The flat parameters the search distribution is over."""
@@ -170,25 +176,39 @@ class SearchPolicy(Policy):
     def forward(self, obs: Tensor) -> Tensor:
         # a population of one: the same code decides for a saved policy and in the search
         return population_actions(self.policy_class, self.params()[None], obs,
-                                  getattr(self, "sizes", None))
+                                  getattr(self, "sizes", None), self.n_tc)
+
+    def kernel_policy(self) -> KernelPolicy | None:
+        return population_kernel_policy(self.policy_class, self.params()[None], 1, self.n_tc)
 
 
 def population_actions(policy_class: str, params: Tensor, obs: Tensor,
-                       sizes: list[tuple[int, int]] | None = None) -> Tensor:
+                       sizes: list[tuple[int, int]] | None = None, n_tc: int = 2) -> Tensor:
     """Actions ``[K * n]`` of ``K`` candidates (``params [K, P]``) on a candidate-major batch
     of observations ``[K * n, F]`` (candidate ``k`` owns rows ``k * n ... (k + 1) * n - 1``)."""
     k = params.shape[0]
     if policy_class == "table":
-        cell = state_index(obs).view(k, -1)
+        cell = state_index(obs, n_tc).view(k, -1)
         return params.gather(1, cell).reshape(-1).long()
     assert sizes is not None
     return (mlp_logits(params, obs.view(k, -1, obs.shape[-1]), sizes) > 0).reshape(-1).long()
 
 
+def population_kernel_policy(policy_class: str, params: Tensor, sites: int,
+                             n_tc: int = 2) -> KernelPolicy | None:
+    """The in-kernel form of ``K`` candidates (``params [K, P]``) on a candidate-major batch
+    of ``K * sites`` sites, or ``None`` for the network class (batched forward passes)."""
+    if policy_class != "table":
+        return None
+    k = params.shape[0]
+    rows = torch.arange(k, dtype=torch.int64).repeat_interleave(sites)
+    return KernelPolicy(TABLE, table=params.to(torch.int8).cpu(), n_tc=n_tc, rows=rows)
+
+
 @torch.no_grad()
 def evaluate_population(policy_class: str, params: Tensor, site_cfg: SiteConfig, sites: int,
                         ticks: int, seed: int, sizes: list[tuple[int, int]] | None = None,
-                        fused: bool | None = None) -> dict[str, Tensor]:
+                        fused: bool | None = None, n_tc: int = 2) -> dict[str, Tensor]:
     """Every candidate of ``params [K, P]`` on the same ``sites`` sites of ``seed`` in one
     batched simulation. Returns ``[K, sites]`` records (``trips``, ``queue``, ``failed``,
     ``ticks_survived``): row ``k`` is exactly what a separate simulation of candidate ``k``
@@ -197,9 +217,10 @@ def evaluate_population(policy_class: str, params: Tensor, site_cfg: SiteConfig,
     encode = get_encoding("partial")
     params = params.cpu()
     rec = run_sites(lambda site, s: population_actions(policy_class, params, encode(site, s),
-                                                       sizes),
+                                                       sizes, n_tc),
                     site_cfg, k * sites, ticks, seed, "cpu", fused=fused,
-                    site_index=torch.arange(sites, dtype=torch.int64).repeat(k))
+                    site_index=torch.arange(sites, dtype=torch.int64).repeat(k),
+                    kernel_policy=population_kernel_policy(policy_class, params, sites, n_tc))
     return {key: v.view(k, sites) for key, v in rec.items()}
 
 
@@ -232,13 +253,14 @@ class SearchLearner(Learner):
                  init_policy: Policy | None = None) -> None:
         super().__init__()
         self.agent, self.site_cfg, self.seed = agent, site_cfg, seed
-        self.greedy = SearchPolicy(agent.policy_class, agent.hidden, agent.depth)
+        self.greedy = SearchPolicy(agent.policy_class, agent.hidden, agent.depth, agent.tc_bins)
         self.sizes = getattr(self.greedy, "sizes", None)
         if agent.policy_class == "table":
             if init_policy is None:
-                p = torch.full((N_STATES,), 0.5)
+                p = torch.full((n_cells(agent.tc_bins),), 0.5)
             else:
-                p = init_policy(cell_centres()).float().clamp(agent.p_min, 1 - agent.p_min)
+                p = init_policy(cell_centres(agent.tc_bins)).float().clamp(agent.p_min,
+                                                                           1 - agent.p_min)
             self.register_buffer("mean", p)
             self.register_buffer("std", torch.zeros(0))
         else:
@@ -293,7 +315,7 @@ class SearchLearner(Learner):
         cand = self.sample()
         seed = generation_seed(self.seed, int(self.generation))
         rec = evaluate_population(a.policy_class, cand, self.site_cfg, a.sites, a.ticks, seed,
-                                  self.sizes)
+                                  self.sizes, n_tc=a.tc_bins)
         key = rank_key(rec["failed"], rec["trips"])
         order = key.argsort(descending=True, stable=True)[:a.elite]
         if a.elitist:  # only candidates that beat the mode on these sites pull the mean
@@ -350,16 +372,18 @@ def clone_policy(policy: Policy, sizes: list[tuple[int, int]], seed: int,
     return theta.detach()
 
 
-def cell_centres() -> Tensor:
-    """One ``partial`` observation at the centre of each of the 200 cells, in cell order
-    (so ``policy(cell_centres())`` is a policy's action table)."""
-    cells = torch.arange(N_STATES)
-    busy = cells % 2
-    soc_bins = cells // 2
-    soc_d, others = soc_bins // 10, soc_bins % 10
-    obs = torch.stack(((soc_d * 10 + 5) / 100.0, (others * 10 + 5) / 100.0,
-                       busy * 0.5), dim=1).float()
-    assert bool((state_index(obs) == cells).all())
+def cell_centres(n_tc: int = 2) -> Tensor:
+    """One ``partial`` observation at the centre of each cell of the discretisation with
+    ``n_tc`` charger bins, in cell order (so ``policy(cell_centres())`` is a policy's action
+    table): socs at the middle of their bins, TC 0 (free) or the middle of its share of
+    (0, 1]."""
+    cells = torch.arange(n_cells(n_tc))
+    tc_bin = cells % n_tc
+    soc_bins = cells // n_tc
+    soc_d, others = soc_bins // N_SOC_BINS, soc_bins % N_SOC_BINS
+    tc = torch.where(tc_bin > 0, (tc_bin - 0.5) / max(n_tc - 1, 1), 0.0)
+    obs = torch.stack(((soc_d * 10 + 5) / 100.0, (others * 10 + 5) / 100.0, tc), dim=1).float()
+    assert bool((state_index(obs, n_tc) == cells).all())
     return obs
 
 

@@ -19,6 +19,7 @@ from tensordict import TensorDictBase
 from torch import Tensor
 
 from ..env import MDPConfig, discount_exponent
+from ..sim.fused import TABLE, KernelPolicy
 from ..utils.checks import check_range
 from .base import AgentConfig, Learner, Policy
 
@@ -55,12 +56,26 @@ N_SOC_BINS = 10
 N_STATES = N_SOC_BINS * N_SOC_BINS * 2
 
 
-def state_index(obs: Tensor) -> Tensor:
-    """Discretise ``partial`` observations ``[..., 3]`` (normalised) to ``[0, 200)``."""
+def n_cells(n_tc: int = 2) -> int:
+    """Cells of the discretised ``partial`` state with ``n_tc`` charger bins."""
+    return N_SOC_BINS * N_SOC_BINS * n_tc
+
+
+def state_index(obs: Tensor, n_tc: int = 2) -> Tensor:
+    """Discretise ``partial`` observations ``[..., 3]`` (normalised) to ``[0, 100 n_tc)``:
+    ``(soc_D bin * 10 + others bin) * n_tc + TC bin``. TC bin 0 is a free charger; with
+    ``n_tc = 2`` (the tabular learner's 200 states) bin 1 is busy, with more bins the busy
+    range ``(0, 1]`` is cut into ``n_tc - 1`` equal shares (the kernel's table policies use
+    the same float32 arithmetic: :mod:`fleet_torchrl.sim.kernel`)."""
     # + 1e-4: soc 40 is 0.4 after float32 scaling, which times 10 is 3.9999998, not 4
     soc_bins = (obs[..., :2] * N_SOC_BINS + 1e-4).long().clamp_(0, N_SOC_BINS - 1)
-    busy = (obs[..., 2] > 0).long()
-    return (soc_bins[..., 0] * N_SOC_BINS + soc_bins[..., 1]) * 2 + busy
+    tc = obs[..., 2]
+    busy = tc > 0
+    if n_tc == 2:
+        tc_bin = busy.long()
+    else:
+        tc_bin = torch.where(busy, 1 + (tc * (n_tc - 1)).long().clamp(max=n_tc - 2), 0)
+    return (soc_bins[..., 0] * N_SOC_BINS + soc_bins[..., 1]) * n_tc + tc_bin
 
 
 class TabularQPolicy(Policy):
@@ -79,6 +94,10 @@ class TabularQPolicy(Policy):
 
     def forward(self, obs: Tensor) -> Tensor:
         return self.q_values(obs).argmax(-1)
+
+    def kernel_policy(self) -> KernelPolicy:
+        """The greedy action of every cell as an action table (ties -> pass, as argmax)."""
+        return KernelPolicy(TABLE, table=self.q.argmax(-1).to(torch.int8)[None].cpu())
 
 
 class TabularLearner(Learner):

@@ -5,8 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from ..utils.checks import check_choice, check_range
-
-REWARDS = ("thesis", "throughput")
+from .objectives import OBJECTIVES, get_objective
 
 
 @dataclass
@@ -36,7 +35,7 @@ class MDPConfig:
 
     def validate(self, path: str = "mdp") -> MDPConfig:
         check_range(f"{path}.tau_e", self.tau_e, 1, 10**9)
-        check_choice(f"{path}.reward", self.reward, REWARDS)
+        check_choice(f"{path}.reward", self.reward, tuple(OBJECTIVES))
         check_range(f"{path}.p_f", self.p_f, 0.0, None)
         check_range(f"{path}.p_q", self.p_q, 0.0, None)
         check_range(f"{path}.gamma", self.gamma, 0.0, 1.0)
@@ -45,8 +44,13 @@ class MDPConfig:
         return self
 
     @property
+    def objective(self):
+        """The :class:`~fleet_torchrl.env.objectives.Objective` that ``reward`` names."""
+        return get_objective(self.reward)
+
+    @property
     def discount(self) -> float:
         """The learners' discount base: per decision (thesis) or per tick (throughput); a
         transition is discounted by ``discount ** exponent`` (see
         :func:`fleet_torchrl.env.fleet_env.discount_exponent`)."""
-        return self.gamma if self.reward == "thesis" else self.gamma_tick
+        return self.objective.discount(self)

@@ -19,8 +19,6 @@ validation reads this registry) and adding a ``fleet_torchrl/conf/state/<name>.y
 
 from __future__ import annotations
 
-import functools
-
 import torch
 from torch import Tensor
 
@@ -39,19 +37,12 @@ class Encoding:
 
 def charger_time(site: Site, s: SiteState) -> Tensor:
     """``TC`` of MODEL §2 for every site: ``[B]`` float32."""
-    if s.params is not None:
-        return _charger_ticks(s).to(torch.float32) / (s.params.t_c + 1).to(torch.float32)
-    return _charger_ticks(s).to(torch.float32) / (site.t_c + 1)
+    return _charger_ticks(s).to(torch.float32) / (s.params.t_c + 1).to(torch.float32)
 
 
 def _charger_ticks(s: SiteState) -> Tensor:
     """``ticks left + 1`` of the vehicle at C, 0 if C is empty: ``[B]`` int64."""
     return ((s.pos == C) * (s.left + 1)).sum(0)
-
-
-@functools.lru_cache(maxsize=64)
-def _partial_scale(t_c: int, device: torch.device) -> Tensor:
-    return torch.tensor([0.01, 0.01, 1.0 / (t_c + 1)], device=device)
 
 
 class Partial(Encoding):
@@ -65,11 +56,10 @@ class Partial(Encoding):
         soc_d = (soc * (s.pos == D)).sum(0)
         others = torch.where(s.pos > C, soc, 100.0).amin(0)  # neither D (0) nor C (1)
         raw = torch.stack((soc_d, others, _charger_ticks(s).to(torch.float32)), dim=1)
-        if s.params is not None:  # each site's own 1 / (T_C + 1), as float32 of the double
-            inv = (1.0 / (s.params.t_c.double() + 1.0)).float()
-            scale = torch.stack((torch.full_like(inv, 0.01), torch.full_like(inv, 0.01), inv), 1)
-            return raw * scale
-        return raw * _partial_scale(site.t_c, soc.device)
+        # each site's own 1 / (T_C + 1), as the float32 of the double
+        inv = (1.0 / (s.params.t_c.double() + 1.0)).float()
+        scale = torch.stack((torch.full_like(inv, 0.01), torch.full_like(inv, 0.01), inv), 1)
+        return raw * scale
 
 
 class All(Encoding):
@@ -100,14 +90,10 @@ class PartialSite(Encoding):
 
     def __call__(self, site: Site, s: SiteState) -> Tensor:
         base = ENCODINGS["partial"](site, s)
-        b, n = s.pos.shape[1], float(site.n_nodes)
-        if s.params is not None:
-            n_v = s.params.n_vehicles.to(torch.float32)
-            p_c = s.params.p_c.to(torch.float32)
-            t_c = s.params.t_c.to(torch.float32)
-        else:
-            n_v, p_c, t_c = (torch.full((b,), float(x), device=s.pos.device)
-                             for x in (site.n_vehicles, site.p_c, site.t_c))
+        n = float(site.n_nodes)
+        n_v = s.params.n_vehicles.to(torch.float32)
+        p_c = s.params.p_c.to(torch.float32)
+        t_c = s.params.t_c.to(torch.float32)
         return torch.cat((base, torch.stack((n_v / n, p_c, t_c / (t_c + n)), dim=1)), dim=1)
 
 

@@ -6,20 +6,12 @@ reaches ``D`` (a new decision), the site fails (``terminated``) or the episode's
 ``tau_e`` runs out (``truncated``). Sites finish at different ticks; a site that is done for
 this step is frozen (it does not advance) while the others go on.
 
-Reward, ``mdp.reward`` (MODEL §2):
-
-* ``thesis`` (default): the mean cost of the ticks of the step, a tick costing ``-p_f`` if the
-  site failed in it, else ``-p_q`` if it was a queue tick, else 0; the learners discount it by
-  ``mdp.gamma`` per decision.
-* ``throughput`` (an extension): a semi-Markov, differential trip reward. Tick ``k`` of the
-  step (``k = 0`` is the tick right after the decision) earns ``trip_k - rho - p_f * fail_k``
-  (``rho = mdp.rho``, a reference trip rate per tick), discounted within the step by
-  ``gamma_tick^k``, so a step of ``dt`` ticks that ends with a trip earns
-  ``gamma_tick^(dt-1) - rho * (1 - gamma_tick^dt) / (1 - gamma_tick)``; the learners discount
-  the next state by ``gamma_tick^dt``. Its long-run average per tick is
-  ``trips/tick - rho - p_f * failures/tick``: without failures it ranks policies exactly by
-  their trips, and ``rho`` only centres the values near 0. The discount exponent of every
-  transition is given by :func:`discount_exponent`.
+Reward, ``mdp.reward`` (MODEL §2): the simulator reports each step's events (its ticks,
+trips, queue ticks, and what its last tick brought) and the objective of
+:mod:`fleet_torchrl.env.objectives` turns them into the reward and the discount exponent of
+the step (:func:`discount_exponent`): ``thesis`` (default), the mean cost of the step's
+ticks, discounted per decision; ``throughput``, a semi-Markov, differential trip reward,
+discounted per tick.
 
 Every site's episode ``k`` uses site index ``k * B + b`` in the common random numbers of
 :mod:`fleet_torchrl.sim.rng` under ``rng.training_seed(seed)``, so the whole stream of initial
@@ -29,11 +21,10 @@ After a reset a site runs until its first decision; in the rare case that it fai
 any vehicle reaches ``D`` (only possible with a tiny ``xi``), it is redrawn with its next
 episode index.
 
-Backends (``fused``, same observations, rewards and flags bit for bit): on CPU a step is by
-default ONE call of the compiled kernel of :mod:`fleet_torchrl.sim.fused`, which runs every
-site to its next decision, failure or ``tau_e`` and accumulates the reward on the way
-(``fused=None``/``True``); ``fused=False``, and any device but the CPU, run the eager loop
-of :meth:`Site.tick` calls, one per tick with a host sync per tick.
+Backends (``fused``, same observations, rewards and flags bit for bit): by default a step
+is ONE call of the compiled kernel of :mod:`fleet_torchrl.sim.fused`, which runs every site
+to its next decision, failure or ``tau_e`` (``fused=None``/``True``); ``fused=False`` runs
+the eager loop of :meth:`Site.tick` calls, one per tick with a host sync per tick.
 
 The environment's ``state_dict`` holds everything that evolves: the episode counter of every
 slot (a buffer), the training seed, and the sites themselves (vehicles, decisions, tick
@@ -55,6 +46,7 @@ from torchrl.envs import EnvBase
 
 from ..sim import Site, SiteConfig, SiteParams, TickOutcome, rng
 from ..sim import fused as _fused
+from ..sim.fused import Events
 from .config import MDPConfig
 from .encodings import get_encoding
 
@@ -68,19 +60,18 @@ def step_ticks(td: TensorDictBase) -> torch.Tensor:
 
 
 def discount_exponent(td: TensorDictBase, mdp: MDPConfig) -> torch.Tensor:
-    """The exponent of ``mdp.discount`` for each transition (float, ``[..., 1]``): 1 per
-    decision (``thesis``) or the step's ticks (``throughput``, ``gamma_tick^dt``)."""
-    if mdp.reward == "thesis":
-        return torch.ones_like(td.get(("next", "reward")))
-    return step_ticks(td).to(torch.float32)
+    """The exponent of ``mdp.discount`` for each transition (float, ``[..., 1]``), as the
+    objective says: 1 per decision (``thesis``) or the step's ticks (``throughput``,
+    ``gamma_tick^dt``)."""
+    return mdp.objective.exponent(step_ticks(td))
 
 
 class FleetChargingEnv(EnvBase):
     """Batched charging-site MDP (``batch_size=[num_sites]``).
 
-    ``fused``: ``None`` (default) steps with the compiled kernel on CPU when gcc can build it,
-    ``True`` forces it on CPU, ``False`` uses the eager tick loop; other devices always use
-    the eager loop (:func:`fleet_torchrl.sim.fused.use_fused`).
+    ``fused``: ``None`` (default) steps with the compiled kernel wherever it runs (always on
+    the CPU, on CUDA with numba-cuda), ``True`` forces it, ``False`` uses the eager tick
+    loop (:func:`fleet_torchrl.sim.fused.use_fused`).
     """
 
     _batch_locked = True
@@ -137,58 +128,48 @@ class FleetChargingEnv(EnvBase):
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         b = self.num_sites
-        s = self.state
+        s, m = self.state, self.mdp
         self.site.decide(s, torch.ones(b, dtype=torch.bool, device=self.device),
                          tensordict.get("action").reshape(b))
-        if self.fused:
-            return self._step_fused()
-        active = torch.ones(b, dtype=torch.bool, device=self.device)
-        cost = torch.zeros(b, dtype=torch.float32, device=self.device)
-        n_ticks = torch.zeros(b, dtype=torch.int64, device=self.device)
-        terminated = torch.zeros(b, dtype=torch.bool, device=self.device)
-        truncated = torch.zeros_like(terminated)
-        m = self.mdp
-        p_f, p_q, tau, thesis = m.p_f, m.p_q, m.tau_e, m.reward == "thesis"
-        disc = torch.ones(b, dtype=torch.float32, device=self.device)  # gamma_tick^k
-        while True:
-            was_active = active.clone()
-            out = self._advance(active)
-            if thesis:
-                cost -= torch.where(out.failed, p_f, torch.where(out.queue, p_q, 0.0))
-            else:  # arrived and failed are False on frozen sites
-                tick_r = out.arrived.float() - m.rho * was_active - p_f * out.failed.float()
-                cost += disc * tick_r
-                disc = torch.where(was_active, disc * m.gamma_tick, disc)
-            n_ticks += active
-            terminated |= out.failed
-            out_of_time = active & (s.tick >= tau) & ~out.failed
-            truncated |= out_of_time
-            active &= ~(out.arrived | out.failed | out_of_time)
-            if not bool(active.any()):
-                break
+        if self.fused:  # one kernel call: every site to its next decision, failure or tau_e
+            ev = _fused.advance(self.site, s, self._hash, m.tau_e)
+        else:
+            ev = self._run_eager()
+        self._trips += ev.trips
+        self._queue += ev.queue
+        terminated = ev.failed
+        truncated = (s.tick >= m.tau_e) & ~terminated
         td = self._observe()
-        td.set("reward", (cost / n_ticks if thesis else cost).unsqueeze(-1))
+        td.set("reward", m.objective.reward(ev, m).unsqueeze(-1))
         td.set("terminated", terminated.unsqueeze(-1))
         td.set("truncated", truncated.unsqueeze(-1))
         td.set("done", (terminated | truncated).unsqueeze(-1))
         return td
 
-    def _step_fused(self) -> TensorDictBase:
-        """:meth:`_step` after the decision, as one kernel call (same float32 arithmetic)."""
-        s, m = self.state, self.mdp
-        out = _fused.advance(self.site, s, self._hash, m.tau_e, None, p_f=m.p_f, p_q=m.p_q,
-                             rho=m.rho, gamma_tick=m.gamma_tick)
-        self._trips += out.trips
-        self._queue += out.queue
-        terminated = out.failed
-        truncated = (s.tick >= m.tau_e) & ~terminated
-        reward = out.cost / out.ticks if m.reward == "thesis" else out.discounted
-        td = self._observe()
-        td.set("reward", reward.unsqueeze(-1))
-        td.set("terminated", terminated.unsqueeze(-1))
-        td.set("truncated", truncated.unsqueeze(-1))
-        td.set("done", (terminated | truncated).unsqueeze(-1))
-        return td
+    def _run_eager(self) -> Events:
+        """The events of :func:`fleet_torchrl.sim.fused.advance`, one :meth:`Site.tick` at a
+        time: every site runs to its next decision, its failure or ``tau_e``."""
+        b, dev, s = self.num_sites, self.device, self.state
+        active = torch.ones(b, dtype=torch.bool, device=dev)
+        zeros = dict(dtype=torch.int64, device=dev)
+        ev = Events(ticks=torch.zeros(b, **zeros), trips=torch.zeros(b, **zeros),
+                    queue=torch.zeros(b, **zeros), arrived=torch.zeros(b, dtype=torch.bool,
+                                                                       device=dev),
+                    failed=torch.zeros(b, dtype=torch.bool, device=dev),
+                    queued=torch.zeros(b, dtype=torch.bool, device=dev))
+        while True:
+            out = self.site.tick(s, self.site.closures_hashed(self._hash, s.tick, s.params),
+                                 active)
+            ev.ticks += active
+            ev.trips += out.arrived
+            ev.queue += out.queue
+            for name in ("arrived", "failed"):
+                getattr(ev, name).copy_(torch.where(active, getattr(out, name),
+                                                    getattr(ev, name)))
+            ev.queued.copy_(torch.where(active, out.queue, ev.queued))
+            active &= ~(out.arrived | out.failed | (s.tick >= self.mdp.tau_e))
+            if not bool(active.any()):
+                return ev
 
     # ------------------------------------------------------------------ checkpoints
     _DYNAMIC = ("pos", "soc", "left", "charge", "tick")
@@ -199,9 +180,8 @@ class FleetChargingEnv(EnvBase):
         sd = super().state_dict(*args, **kwargs)
         for name in self._DYNAMIC:
             sd[f"site.{name}"] = getattr(self.state, name).clone()
-        if self.state.params is not None:  # the drawn parameters of the sites in flight
-            for name in self._PARAMS:
-                sd[f"site.params.{name}"] = getattr(self.state.params, name).clone()
+        for name in self._PARAMS:  # the parameters of the sites in flight (drawn or not)
+            sd[f"site.params.{name}"] = getattr(self.state.params, name).clone()
         sd.update({"site.hash": self._hash.clone(), "site.trips": self._trips.clone(),
                    "site.queue": self._queue.clone(),
                    "seed": torch.tensor(self._seed, dtype=torch.int64)})
@@ -212,8 +192,8 @@ class FleetChargingEnv(EnvBase):
         dev = self.device
         for name in self._DYNAMIC:
             setattr(self.state, name, state_dict.pop(f"site.{name}").to(dev).clone())
-        if self.state.params is not None:
-            for name in self._PARAMS:
+        for name in self._PARAMS:  # (a single site's are its constants: kept if absent)
+            if f"site.params.{name}" in state_dict:
                 setattr(self.state.params, name,
                         state_dict.pop(f"site.params.{name}").to(dev).clone())
         self._hash = state_dict.pop("site.hash").to(dev).clone()
@@ -261,7 +241,8 @@ class FleetChargingEnv(EnvBase):
             failed = torch.zeros_like(todo)
             if self.fused:  # one kernel call: every site to its first decision or failure
                 if bool(running.any()):
-                    out = _fused.advance(self.site, self.state, self._hash, _NO_LIMIT, running)
+                    out = _fused.advance(self.site, self.state, self._hash, _NO_LIMIT,
+                                         running)
                     self._trips += out.trips
                     self._queue += out.queue
                     failed = out.failed

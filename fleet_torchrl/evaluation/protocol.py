@@ -23,7 +23,6 @@ from torch import Tensor
 from ..agents.base import Policy
 from ..env.encodings import get_encoding
 from ..sim import SiteConfig
-from ..sim import fused as _fused
 from ..sim.rollout import run_sites
 from ..utils.numerics import flush_denormals
 from .config import EvalConfig, fused_switch
@@ -33,22 +32,24 @@ from .results import summarize
 def simulate(policy: Policy, site_cfg: SiteConfig, n_sims: int = 1000, ticks: int = 10_000,
              seed: int = 0, device: str | torch.device = "cpu", chunk: int = 256,
              progress: bool = False, desc: str | None = None,
-             fused: bool | None = None) -> dict[str, Tensor]:
+             fused: bool | None = None, in_kernel: bool = True) -> dict[str, Tensor]:
     """Per-simulation records (CPU tensors): ``trips``, ``queue``, ``failed``,
     ``ticks_survived``; simulation ``i`` is site ``i`` of ``seed``.
 
-    ``fused``: ``None`` uses the compiled event loop on CPU (when gcc can build it), ``True``
-    forces it on CPU, ``False`` runs the eager tick loop; off the CPU the eager loop always
-    runs (see :func:`fleet_torchrl.sim.fused.use_fused`).
+    ``fused``: ``None`` uses the compiled kernel wherever it runs, ``True`` forces it,
+    ``False`` runs the eager tick loop (see :func:`fleet_torchrl.sim.fused.use_fused`).
+    With ``in_kernel`` (default) a policy that has a
+    :meth:`~fleet_torchrl.agents.base.Policy.kernel_policy` decides inside the kernel (the
+    same decisions, no Python per decision epoch).
     """
     device = torch.device(device)
     flush_denormals()  # subnormal network weights would slow every forward pass 10x
     encode = get_encoding(policy.encoding)
-    on = "cpu" if _fused.use_fused(device, fused) else device
-    policy = policy.to(on).eval()
+    policy = policy.to(device).eval()
     return run_sites(lambda site, s: policy(encode(site, s)), site_cfg, n_sims, ticks, seed,
                      device, chunk, fused, progress=progress,
-                     desc=desc or f"eval {policy.name}")
+                     desc=desc or f"eval {policy.name}",
+                     kernel_policy=policy.kernel_policy() if in_kernel else None)
 
 
 def evaluate_policy(policy: Policy, site_cfg: SiteConfig, n_sims: int, ticks: int, seed: int,

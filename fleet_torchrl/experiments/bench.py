@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import os
 import statistics
+import subprocess
+import sys
 import tempfile
 import time
 
@@ -75,44 +77,66 @@ def bench_env_reference(b: int, steps: int, repeats: int) -> float:
                        repeats)
 
 
+_COMPILE = """
+import time
+t0 = time.perf_counter()
+import torch
+from fleet_torchrl.sim import Site, SiteConfig, fused
+site = Site(SiteConfig())
+s, needs = site.init_state(0, torch.arange(4))
+fused.advance(site, s, site.site_hash(0, torch.arange(4)), 50)
+print(time.perf_counter() - t0)
+"""
+
+
 def compile_time() -> float:
-    """Seconds to build the fused kernel from scratch (in a throw-away cache dir)."""
-    old = os.environ.get("FLEET_TORCHRL_CACHE")
+    """Seconds a fresh process takes to compile the kernel (numba, into a throw-away cache
+    dir) and run it once; numba then caches it on disk, once per machine."""
     with tempfile.TemporaryDirectory() as d:
-        os.environ["FLEET_TORCHRL_CACHE"] = d
-        fused._reset_for_tests()
-        try:
-            t0 = time.perf_counter()
-            fused.load()
-            return time.perf_counter() - t0
-        finally:
-            if old is None:
-                del os.environ["FLEET_TORCHRL_CACHE"]
-            else:
-                os.environ["FLEET_TORCHRL_CACHE"] = old
-            fused._reset_for_tests()
+        env = {**os.environ, "NUMBA_CACHE_DIR": d}
+        r = subprocess.run([sys.executable, "-c", _COMPILE], capture_output=True, text=True,
+                           env=env, check=True)
+        return float(r.stdout.strip().splitlines()[-1])
 
 
 def bench_protocol(repeats: int, n_sims: int = 1000, ticks: int = 10_000) -> dict[str, float]:
-    """Median wall times (s) of the thesis protocol with the rule policy on CPU: ``eager``,
-    ``fused`` (kernel already built) and ``reference`` (numpy), ``compile`` (once), and
-    ``fused_randomized`` (fused, every simulation its own site of ``site=randomized``)."""
+    """Median wall times (s) of the thesis protocol with the rule policy on CPU: ``fused``
+    (the rule inside the kernel: one call), ``fused_stepwise`` (the kernel stops at every
+    decision epoch for the policy's forward pass, as a network's evaluation does),
+    ``eager`` and ``reference`` (numpy), ``compile`` (once per machine), and
+    ``fused_randomized`` (every simulation its own site of ``site=randomized``)."""
     from ..sim.reference import rule_policy, simulate_reference
 
     cfg = SiteConfig()
     out = {"compile": compile_time()}
-    fused.load()
-    out["fused"] = median_time(lambda: simulate(RulePolicy(), cfg, n_sims, ticks, 0, "cpu",
-                                                fused=True), repeats)
-    out["eager"] = median_time(lambda: simulate(RulePolicy(), cfg, n_sims, ticks, 0, "cpu",
-                                                fused=False), repeats)
+    run = lambda c=cfg, **kw: simulate(RulePolicy(), c, n_sims, ticks, 0, "cpu", **kw)  # noqa: E731
+    out["fused"] = median_time(lambda: run(fused=True), repeats)
+    out["fused_stepwise"] = median_time(lambda: run(fused=True, in_kernel=False), repeats)
+    out["eager"] = median_time(lambda: run(fused=False), repeats)
     mixed = SiteConfig(name="randomized", ranges=SiteRanges(n_vehicles=[1, 5], p_c=[0.0, 0.9],
                                                             t_c=[10, 50])).validate()
-    out["fused_randomized"] = median_time(lambda: simulate(RulePolicy(), mixed, n_sims, ticks, 0,
-                                                           "cpu", fused=True), repeats)
+    out["fused_randomized"] = median_time(lambda: run(mixed, fused=True), repeats)
     out["reference"] = median_time(lambda: simulate_reference(rule_policy, cfg, n_sims, ticks, 0),
                                    max(1, repeats // 2))
     return out
+
+
+@torch.inference_mode()
+def bench_kernel(b: int, ticks: int, repeats: int, device: str = "cpu") -> float:
+    """Seconds of one kernel call running ``b`` default sites for ``ticks`` ticks with the
+    rule inside the kernel (site-ticks per second at large batches, CPU or CUDA)."""
+    site = Site(SiteConfig(), device)
+    idx = torch.arange(b, device=device)
+    pol = RulePolicy().kernel_policy()
+    h = site.site_hash(0, idx)
+
+    def run():
+        s, _ = site.init_state(0, idx)
+        fused.advance(site, s, h, ticks, None, pol)
+        if torch.device(device).type == "cuda":
+            torch.cuda.synchronize()
+
+    return median_time(run, repeats)
 
 
 LEARNERS = {"tabular": ["agent=tabular"], "dqn_partial": ["agent=dqn", "state=partial"],

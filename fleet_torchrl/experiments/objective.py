@@ -63,10 +63,7 @@ def mdp_score(policy: Policy, site_cfg: SiteConfig, mdp_cfg: MDPConfig, n_sites:
         done |= nxt["done"].squeeze(-1)
         td = nxt.clone()
     m = mdp_cfg
-    if m.reward == "thesis":
-        per_tick = -(m.p_q * queue.sum() + m.p_f * failed.sum()) / ticks.sum()
-    else:
-        per_tick = (trips.sum() - m.rho * ticks.sum() - m.p_f * failed.sum()) / ticks.sum()
+    per_tick = m.objective.rate(trips.sum(), queue.sum(), failed.float().sum(), ticks.sum(), m)
     return {"reward_per_decision": float(reward.sum() / steps.sum()),
             "reward_per_tick": float(per_tick),
             "decisions": float(steps.mean()), "trips": float(trips.mean()),
@@ -88,7 +85,8 @@ def candidate_policies(cfg: Config) -> dict[str, Policy]:
 def criterion(mdp_cfg: MDPConfig) -> str:
     """The score a learner of this objective maximises: per decision (``thesis``, discounted
     per decision) or per tick (``throughput``, discounted per tick)."""
-    return "reward_per_decision" if mdp_cfg.reward == "thesis" else "reward_per_tick"
+    return ("reward_per_decision" if mdp_cfg.objective.ranks_by_decision()
+            else "reward_per_tick")
 
 
 def score_table(scores: dict[str, dict[str, float]], key: str = "reward_per_decision") -> str:

@@ -45,10 +45,10 @@ class ReferenceState:
         return cls(**{f.name: getattr(s, f.name).detach().cpu().numpy().copy()
                       for f in fields(cls)})
 
-    def to_torch(self) -> SiteState:
-        """A torch (CPU) copy of this state."""
-        return SiteState(**{f.name: torch.from_numpy(getattr(self, f.name).copy())
-                            for f in fields(self)})
+    def to_torch(self, site: Site) -> SiteState:
+        """A torch (CPU) copy of this state, as a state of ``site`` (its parameters)."""
+        return site.state(**{f.name: torch.from_numpy(getattr(self, f.name).copy())
+                             for f in fields(self)})
 
     def copy(self) -> ReferenceState:
         return ReferenceState(**{f.name: getattr(self, f.name).copy() for f in fields(self)})

@@ -11,9 +11,12 @@ initial state and closure draws are those of that index, whatever else is in the
 two runs with the same seed and index are paired. Two backends give the same records bit
 for bit (``tests/sim/test_fused.py``):
 
-* fused (CPU): one call of the compiled kernel of :mod:`fleet_torchrl.sim.fused` runs every
-  alive site to its next decision, its failure or the tick budget; then one ``decide`` over
-  the batch. One Python iteration per decision epoch; a failed site stops.
+* fused (the compiled kernel of :mod:`fleet_torchrl.sim.fused`, CPU or CUDA): one call runs
+  every alive site to its next decision, its failure or the tick budget; then one ``decide``
+  over the batch. One Python iteration per decision epoch; a failed site stops. With a
+  ``kernel_policy`` (the rule, the heuristic, a threshold policy or an action table, lowered
+  by :mod:`fleet_torchrl.agents.lowering`) the kernel decides itself and a whole run is one
+  call (a few with a progress bar).
 * eager (any device): each tick is one :meth:`Site.tick` and one ``decide`` over the whole
   batch. Closure draws are generated ``chunk`` ticks at a time; a failed site keeps being
   simulated but stops counting.
@@ -28,20 +31,24 @@ from torch import Tensor
 
 from . import fused as _fused
 from .config import SiteConfig
+from .fused import KernelPolicy
 from .site import Site, SiteState
 
 Decide = Callable[[Site, SiteState], Tensor]
+_PROGRESS_TICKS = 1000  # ticks per kernel call of an in-kernel policy when a bar is shown
 
 
 @torch.inference_mode()
 def run_sites(decide: Decide, site_cfg: SiteConfig, n_sims: int, ticks: int, seed: int,
               device: str | torch.device = "cpu", chunk: int = 256,
               fused: bool | None = None, site_index: Tensor | None = None,
-              progress: bool = False, desc: str = "simulate") -> dict[str, Tensor]:
+              progress: bool = False, desc: str = "simulate",
+              kernel_policy: KernelPolicy | None = None) -> dict[str, Tensor]:
     """Per-simulation records (CPU tensors): ``trips``, ``queue``, ``failed``,
-    ``ticks_survived``. ``fused``: ``None`` uses the compiled event loop on CPU (when gcc
-    can build it), ``True`` forces it on CPU, ``False`` runs the eager tick loop; off the CPU
-    the eager loop always runs (:func:`fleet_torchrl.sim.fused.use_fused`)."""
+    ``ticks_survived``. ``fused``: ``None`` uses the compiled kernel wherever it runs,
+    ``True`` forces it, ``False`` runs the eager tick loop
+    (:func:`fleet_torchrl.sim.fused.use_fused`). ``kernel_policy``: the same decisions as
+    ``decide``, taken inside the kernel (the eager loop ignores it and calls ``decide``)."""
     device = torch.device(device)
     if site_index is None:
         site_index = torch.arange(n_sims, dtype=torch.int64)
@@ -54,7 +61,8 @@ def run_sites(decide: Decide, site_cfg: SiteConfig, n_sims: int, ticks: int, see
         bar = tqdm(total=ticks, desc=desc, unit="tick", unit_scale=True, leave=False)
     try:
         if _fused.use_fused(device, fused):
-            return _run_fused(decide, Site(site_cfg, "cpu"), site_index.cpu(), ticks, seed, bar)
+            return _run_fused(decide, Site(site_cfg, device), site_index.to(device), ticks,
+                              seed, bar, kernel_policy)
         return _run_eager(decide, Site(site_cfg, device), site_index.to(device), ticks, seed,
                           chunk, bar)
     finally:
@@ -91,34 +99,37 @@ def _run_eager(decide: Decide, site: Site, idx: Tensor, ticks: int, seed: int, c
 
 
 def _run_fused(decide: Decide, site: Site, idx: Tensor, ticks: int, seed: int,
-               bar) -> dict[str, Tensor]:
-    n_sims = idx.shape[0]
+               bar, kernel_policy: KernelPolicy | None = None) -> dict[str, Tensor]:
+    n_sims, dev = idx.shape[0], site.device
     s, needs = site.init_state(seed, idx)
     site.decide(s, needs, decide(site, s))
     site_hash = site.site_hash(seed, idx)
-    trips = torch.zeros(n_sims, dtype=torch.int64)
+    trips = torch.zeros(n_sims, dtype=torch.int64, device=dev)
     queue = torch.zeros_like(trips)
     survived = torch.zeros_like(trips)
-    alive = torch.ones(n_sims, dtype=torch.bool)
+    alive = torch.ones(n_sims, dtype=torch.bool, device=dev)
     active = alive.clone()
-    shown = 0
+    shown, limit = 0, ticks
     while True:
-        out = _fused.advance(site, s, site_hash, ticks, active)
+        if kernel_policy is not None and bar is not None:
+            limit = min(ticks, shown + _PROGRESS_TICKS)
+        out = _fused.advance(site, s, site_hash, limit, active, kernel_policy)
         trips += out.trips
         queue += out.queue
         survived += out.ticks
         alive &= ~out.failed
         active = alive & (s.tick < ticks)
-        sel = out.arrived & active
-        if not bool(sel.any()):
-            if not bool(active.any()):
-                break
-        else:
-            site.decide(s, sel, decide(site, s))
+        if kernel_policy is None:
+            sel = out.arrived & active
+            if bool(sel.any()):
+                site.decide(s, sel, decide(site, s))
+        if not bool(active.any()):
+            break
         if bar is not None:  # progress: the slowest alive site's tick
             low = int(torch.where(active, s.tick, ticks).min())
             bar.update(low - shown)
             shown = low
     if bar is not None:
         bar.update(ticks - shown)
-    return {"trips": trips, "queue": queue, "failed": ~alive, "ticks_survived": survived}
+    return {"trips": trips.cpu(), "queue": queue.cpu(), "failed": (~alive).cpu(),
+            "ticks_survived": survived.cpu()}

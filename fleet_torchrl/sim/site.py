@@ -42,10 +42,13 @@ Choices the model leaves open (documented in docs/MODEL.md §1 as well):
 * Sites can be frozen with the ``active`` mask (failed sites in evaluation, sites waiting for
   a decision in the environment): a frozen site's state and counters do not change at all.
 
-A site *distribution* (``SiteConfig.ranges``, MODEL §1.6) gives every site of the batch its own
-``N_V``, ``p_c`` and ``T_C``, drawn with its initial state from ``(seed, site index)``
-(:meth:`Site.draw_params`) and carried in :class:`SiteParams` inside the state. The state
-then holds the largest fleet of the range; the vehicles a site does not have are *parked* on
+Every state carries its sites' parameters (:class:`SiteParams`: ``N_V``, ``T_C``, the
+charging gain per tick, the closure threshold), so the tick, the compiled kernel, the
+encodings and the environment have one path: a single site is a batch of equal values
+(:meth:`Site.site_params`), and a site *distribution* (``SiteConfig.ranges``, MODEL §1.6)
+gives every site of the batch its own ``N_V``, ``p_c`` and ``T_C``, drawn with its initial
+state from ``(seed, site index)`` (:meth:`Site.draw_params`). The state of a distribution
+holds the largest fleet of the range; the vehicles a site does not have are *parked* on
 an extra node ``N`` that has no occupancy bit, no successor but itself and no energy change,
 so they never block, move, charge, count or fail. Site ``b`` of such a batch is then exactly
 (bit for bit) the single site with ``b``'s parameters under the same seed and index: its
@@ -67,7 +70,8 @@ D, C, BYPASS, M = 0, 1, 2, 3
 
 @dataclass
 class SiteParams:
-    """Per-site parameters of a batch drawn from a site distribution (``[B]`` tensors)."""
+    """Per-site parameters of a batch (``[B]`` tensors): a single site's values repeated, or
+    each site's draws from a site distribution."""
 
     n_vehicles: Tensor  # int64 N_V (vehicles beyond it are parked)
     t_c: Tensor  # int64 T_C
@@ -83,6 +87,9 @@ class SiteParams:
             getattr(self, f.name).copy_(torch.where(mask, getattr(other, f.name),
                                                     getattr(self, f.name)))
 
+    def select(self, idx: Tensor) -> SiteParams:
+        return SiteParams(**{f.name: getattr(self, f.name)[idx] for f in fields(self)})
+
 
 @dataclass
 class SiteState:
@@ -93,27 +100,31 @@ class SiteState:
     left: Tensor  # [V, B] int64 charging ticks left (0 unless charging at C)
     charge: Tensor  # [B] bool decision of the vehicle at D (True = charge)
     tick: Tensor  # [B] int64 ticks this site has run since it was initialised
-    params: SiteParams | None = None  # per-site parameters (a site distribution), else None
+    params: SiteParams  # per-site parameters (N_V, T_C, gain, closure threshold)
 
     @property
     def batch_size(self) -> int:
         return self.pos.shape[1]
 
     def clone(self) -> SiteState:
-        return SiteState(**{f.name: getattr(self, f.name).clone() for f in fields(self)
-                            if f.name != "params"},
-                         params=None if self.params is None else self.params.clone())
+        return SiteState(**{f.name: getattr(self, f.name).clone() for f in fields(self)})
 
     def update_(self, mask: Tensor, other: SiteState) -> SiteState:
         """Overwrite the sites selected by the ``[B]`` bool ``mask`` with ``other``'s."""
         for f in fields(self):
-            if f.name == "params":
-                if self.params is not None:
-                    self.params.update_(mask, other.params)
-                continue
             mine, theirs = getattr(self, f.name), getattr(other, f.name)
-            mine.copy_(torch.where(mask, theirs, mine))  # [B] broadcasts over [V, B]
+            if f.name == "params":
+                mine.update_(mask, theirs)
+            else:
+                mine.copy_(torch.where(mask, theirs, mine))  # [B] broadcasts over [V, B]
         return self
+
+    def select(self, idx: Tensor) -> SiteState:
+        """A new state of the sites ``idx`` (``[K]`` indices, repeats allowed), in that
+        order: copies of their vehicles, decisions, tick counts and parameters."""
+        return SiteState(pos=self.pos[:, idx], soc=self.soc[:, idx], left=self.left[:, idx],
+                         charge=self.charge[idx], tick=self.tick[idx],
+                         params=self.params.select(idx))
 
 
 @dataclass
@@ -175,25 +186,42 @@ class Site:
         give a ``[T, B]`` block of draws. The tick number is the site's own tick count at the
         start of the tick (the first tick of a site is tick 0). The draw is
         ``mix(hash(seed, site, stream) ^ hash(tick)) < p_c * 2**32``: a pure function of the
-        three integers that costs one mixing round per element of the block.
+        three integers that costs one mixing round per element of the block. ``params``:
+        the sites' parameters (default :meth:`site_params` of ``site_idx``).
         """
+        if params is None:
+            params = self.site_params(seed, site_idx.reshape(-1))
         return self.closures_hashed(self.site_hash(seed, site_idx), ticks, params)
 
     def site_hash(self, seed: int, site_idx: Tensor) -> Tensor:
         """The per-site half of the closure draw (cache it while the site index is fixed)."""
         return rng.hash_ints(seed, site_idx, rng.STREAM_CLOSURE, device=self.device)
 
-    def closures_hashed(self, site_hash: Tensor, ticks: Tensor,
-                        params: SiteParams | None = None) -> Tensor:
-        """:meth:`closures` from a precomputed :meth:`site_hash`; with ``params`` (the sites
-        of a distribution, ``[B]`` along the last dimension) each site's own ``p_c``."""
-        if params is not None:
-            return rng.mix_below(site_hash, rng.hash_ints(ticks, device=self.device),
-                                 params.closure)
-        if self.p_c <= 0.0:
-            shape = torch.broadcast_shapes(site_hash.shape, ticks.shape)
-            return torch.zeros(shape, dtype=torch.bool, device=self.device)
-        return rng.combine_below(site_hash, rng.hash_ints(ticks, device=self.device), self.p_c)
+    def closures_hashed(self, site_hash: Tensor, ticks: Tensor, params: SiteParams) -> Tensor:
+        """:meth:`closures` from a precomputed :meth:`site_hash` and the sites' parameters
+        (``[B]`` along the last dimension): each site's own closure threshold."""
+        return rng.mix_below(site_hash, rng.hash_ints(ticks, device=self.device),
+                             params.closure)
+
+    def site_params(self, seed: int, site_idx: Tensor) -> SiteParams:
+        """The parameters of the sites ``site_idx``: drawn from the distribution
+        (:meth:`draw_params`), or the single site's values repeated."""
+        if self.ranges is not None:
+            return self.draw_params(seed, site_idx)
+        return self.constant_params(site_idx.shape[0])
+
+    def constant_params(self, b: int) -> SiteParams:
+        """The single site's parameters for a batch of ``b`` sites (no draw)."""
+        cfg = self.cfg
+        kw = dict(device=self.device)
+        p_c = torch.full((b,), float(cfg.p_c), dtype=torch.float64, **kw)
+        return SiteParams(
+            n_vehicles=torch.full((b,), self.n_vehicles, dtype=torch.int64, **kw),
+            t_c=torch.full((b,), int(cfg.t_c), dtype=torch.int64, **kw),
+            gain=torch.full((b,), float(cfg.e_charge) / cfg.t_c, dtype=torch.float64,
+                            **kw).float(),
+            closure=torch.round(p_c * float(1 << 32)).to(torch.int64),
+            p_c=p_c)
 
     def draw_params(self, seed: int, site_idx: Tensor) -> SiteParams:
         """The parameters of each site of a distribution, a pure function of ``(seed, site
@@ -232,7 +260,7 @@ class Site:
         """
         site_idx = site_idx.to(self.device, torch.int64)
         b, v = site_idx.shape[0], self.n_vehicles
-        params = None if self.ranges is None else self.draw_params(seed, site_idx)
+        params = self.site_params(seed, site_idx)
         cand = self._start_nodes
         keys = rng.uniform(seed, site_idx[None, :], cand[:, None], rng.STREAM_INIT_POS,
                            device=self.device)  # [N-1, B]
@@ -242,7 +270,7 @@ class Site:
                         rng.STREAM_INIT_SOC, device=self.device)
         lo = self.soc_low + self.cfg.xi
         soc = lo + u * (100.0 - lo)
-        if params is not None:  # the vehicles a site does not have are parked, full
+        if self.ranges is not None:  # the vehicles a site does not have are parked, full
             parked = torch.arange(v, device=self.device)[:, None] >= params.n_vehicles
             pos = pos.masked_fill(parked, self.park)
             soc = soc.masked_fill(parked, 100.0)
@@ -255,6 +283,26 @@ class Site:
             params=params,
         )
         return state, (pos == D).any(0)
+
+    def state(self, pos: Tensor, soc: Tensor, left: Tensor | None = None,
+              charge: Tensor | None = None, tick: Tensor | None = None) -> SiteState:
+        """A hand-built state of ``B`` sites of this (single) site: ``pos``, ``soc`` (and
+        ``left``, default 0) ``[V, B]``; ``charge`` (default False) and ``tick`` (default 0)
+        ``[B]``; the site's own parameters, with ``N_V`` the ``V`` vehicles given."""
+        pos = torch.as_tensor(pos, dtype=torch.int64, device=self.device)
+        v, b = pos.shape
+        kw = dict(device=self.device)
+        params = self.constant_params(b)
+        params.n_vehicles.fill_(v)
+        return SiteState(
+            pos=pos, soc=torch.as_tensor(soc, dtype=torch.float32, **kw),
+            left=(torch.zeros(v, b, dtype=torch.int64, **kw) if left is None
+                  else torch.as_tensor(left, dtype=torch.int64, **kw)),
+            charge=(torch.zeros(b, dtype=torch.bool, **kw) if charge is None
+                    else torch.as_tensor(charge, dtype=torch.bool, **kw)),
+            tick=(torch.zeros(b, dtype=torch.int64, **kw) if tick is None
+                  else torch.as_tensor(tick, dtype=torch.int64, **kw)),
+            params=params)
 
     # ---------------------------------------------------------------------- the tick
     def tick(self, s: SiteState, closed: Tensor, active: Tensor | None = None) -> TickOutcome:
@@ -276,20 +324,14 @@ class Site:
         code = charging * 2 + move  # 0 idle, 1 move, 2 charge
         if active is not None:
             code.masked_fill_(~active, 3)  # 3: frozen, no change
-        if par is not None:
-            code.masked_fill_(pos == self.park, 3)  # parked vehicles never change
-            delta = torch.where(code == 2, par.gain, self._delta.take(code))
-        else:
-            delta = self._delta.take(code)
+        code.masked_fill_(pos == self.park, 3)  # parked vehicles never change
+        delta = torch.where(code == 2, par.gain, self._delta.take(code))
         s.soc.add_(delta).clamp_(max=100.0)
         left.sub_(charging.long())
         if self.leave_when_full:  # the charger ends the session on a full battery
             left.masked_fill_(charging & (s.soc >= 100.0), 0)
         into_c = move & (tgt == C)
-        if par is not None:
-            left.copy_(torch.where(into_c, par.t_c, left))
-        else:
-            left.masked_fill_(into_c, self.t_c)
+        left.copy_(torch.where(into_c, par.t_c, left))
         queue = occ_d & s.charge & ~into_c.any(0)
         arrived = (move & (tgt == D)).any(0)
         s.pos = torch.where(move, tgt, pos)

@@ -5,6 +5,8 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
+from ..env.objectives import OBJECTIVES
+
 
 def selection_score(select: str, objective: str, res: dict[str, Any],
                     worst_gain: float | None = None) -> float:
@@ -19,9 +21,9 @@ def selection_score(select: str, objective: str, res: dict[str, Any],
     if select == "robust":
         assert worst_gain is not None, "select=robust needs the worst stratum gain"
         return float(worst_gain)
-    if select == "objective" and objective == "thesis":
-        return -float(res["queue_mean"])
-    return float(res["trips_mean"])
+    if select == "objective" and objective in OBJECTIVES:
+        return OBJECTIVES[objective].snapshot_score(res)
+    return float(res["trips_mean"])  # (the direct search's objective is "trips")
 
 
 @dataclass

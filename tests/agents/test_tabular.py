@@ -17,13 +17,11 @@ def test_state_index_bins():
     assert state_index(obs).tolist() == [0, (3 * 10 + 9) * 2 + 1, (9 * 10 + 9) * 2, 1 * 2]
     # exact multiples of 10 land in their own bin despite float32 scaling (40 -> bin 4)
     from fleet_torchrl.env.encodings import get_encoding
-    from fleet_torchrl.sim import Site, SiteState
+    from fleet_torchrl.sim import Site
 
     site = Site(compose_config([]).site)
     socs = torch.arange(0, 101, dtype=torch.float32)
-    s = SiteState(pos=torch.zeros(1, 101, dtype=torch.int64), soc=socs[None, :],
-                  left=torch.zeros(1, 101, dtype=torch.int64),
-                  charge=torch.zeros(101, dtype=torch.bool), tick=torch.zeros(101))
+    s = site.state(pos=torch.zeros(1, 101, dtype=torch.int64), soc=socs[None, :])
     bins = state_index(get_encoding("partial")(site, s)) // 20
     assert torch.equal(bins, (socs // 10).long().clamp(max=9))
     grid = torch.rand(1000, 3)

@@ -13,13 +13,13 @@ from fleet_torchrl.agents import HeuristicPolicy, as_td_module
 from fleet_torchrl.env import FleetChargingEnv, MDPConfig
 from fleet_torchrl.env.encodings import get_encoding
 from fleet_torchrl.evaluation import simulate
-from fleet_torchrl.sim import Site, SiteConfig, SiteRanges, fused, rng
+from fleet_torchrl.sim import Site, SiteConfig, SiteRanges, rng
 from fleet_torchrl.sim.rollout import run_sites
 from fleet_torchrl.utils.checks import ConfigError
 
 RANGES = SiteRanges(n_vehicles=[1, 5], p_c=[0.0, 0.9], t_c=[10, 50])
 RANDOMIZED = SiteConfig(name="randomized", ranges=RANGES).validate()
-BACKENDS = [False] + ([True] if fused.available() else [])
+BACKENDS = [False, True]
 
 
 def single_site(params, b: int) -> SiteConfig:
@@ -95,8 +95,6 @@ def test_mixed_batch_is_each_single_site_bit_for_bit(use_fused):
 
 
 def test_mixed_batch_same_on_both_backends():
-    if not fused.available():
-        pytest.skip("no C compiler for the kernel")
     a = simulate(HeuristicPolicy(), RANDOMIZED, 256, 2000, 2, fused=False)
     b = simulate(HeuristicPolicy(), RANDOMIZED, 256, 2000, 2, fused=True)
     for k in a:

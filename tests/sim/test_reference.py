@@ -105,7 +105,7 @@ def test_rule_decisions_match_the_torch_rule_at_the_threshold():
                            left=np.zeros((1, soc.size), np.int64),
                            charge=np.zeros(soc.size, bool), tick=np.zeros(soc.size, np.int64))
     site = Site(SiteConfig())
-    obs_torch = encode(site, state.to_torch())
+    obs_torch = encode(site, state.to_torch(site))
     obs = partial_obs(state, site.t_c)
     assert np.array_equal(obs_torch.numpy().view(np.uint32), obs.view(np.uint32))
     assert np.array_equal(RulePolicy()(obs_torch).numpy(), rule_policy(obs))
@@ -183,7 +183,7 @@ def test_env_steps_of_the_reference_match_the_torch_simulator():
     alive = torch.ones(b, dtype=torch.bool)
     pending = ~needs
     while pending.any():
-        out = site.tick(s, site.closures_hashed(h, s.tick), pending)
+        out = site.tick(s, site.closures_hashed(h, s.tick, s.params), pending)
         alive &= ~out.failed
         pending &= ~(out.arrived | out.failed)
     for k in range(steps):
@@ -192,7 +192,7 @@ def test_env_steps_of_the_reference_match_the_torch_simulator():
         ticks = torch.zeros(b, dtype=torch.int64)
         trips = torch.zeros(b, dtype=torch.int64)
         while active.any():
-            out = site.tick(s, site.closures_hashed(h, s.tick), active)
+            out = site.tick(s, site.closures_hashed(h, s.tick, s.params), active)
             ticks += active
             trips += out.arrived & active
             alive &= ~(out.failed & active)

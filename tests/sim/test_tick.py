@@ -112,7 +112,7 @@ def test_a_full_battery_ends_the_charge(make_state, leave_when_full):
 
 def test_charge_energy_is_kept_when_t_c_changes(make_state):
     site = Site(SiteConfig(t_c=10))
-    s = make_state([(C, 40.0, 10)])
+    s = make_state([(C, 40.0, 10)], site=site)
     for _ in range(10):
         site.tick(s, OPEN)
     assert socs(s) == pytest.approx([80.0], abs=1e-4)

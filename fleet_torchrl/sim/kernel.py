@@ -1,0 +1,323 @@
+"""The compiled simulation kernel: every site runs its own ticks, compiled by numba.
+
+One source, two targets. The functions below up to :func:`site_run` are plain Python in the
+subset numba compiles for both the CPU (``numba.njit``, cached on disk per machine) and
+CUDA (``numba.cuda.jit(device=True)``, built by :func:`cuda_kernel` from the same Python
+functions with their calls rebound to the device versions). Nothing here knows torch; the
+callers (:mod:`fleet_torchrl.sim.fused`) pass numpy views of the state tensors (CPU) or
+CUDA array views (GPU), which the kernel updates in place.
+
+What one call does, per active site ``b``, on its own (a thread on the GPU, a ``prange``
+iteration on the CPU): it runs the tick of :mod:`fleet_torchrl.sim.site`, rule for rule and
+bit for bit (the same closure hash, the same float32 energy arithmetic: add the tick's
+delta, then cap at 100; numba does not contract ``a * b + c`` into a fused multiply-add
+without ``fastmath``), until the first of
+
+* a **failure** (some ``soc < SoC_low`` after the tick),
+* its **tick limit** (its tick counter reaches ``limit[b]``),
+* an **arrival** at ``D`` when no policy runs inside the kernel (``kind == NONE``): the
+  caller decides (a network's batched forward pass) and calls again.
+
+With a policy inside the kernel (``THRESHOLD`` or ``TABLE``, row ``pol_row[b]`` of the
+policy arrays) an arrival is decided on the spot from the ``partial`` features, computed
+as :class:`fleet_torchrl.env.encodings.Partial` computes them in float32, and the site runs
+on: a whole evaluation is one call. The policies are the rule, the heuristic and the
+threshold class (:class:`fleet_torchrl.agents.threshold.ThresholdPolicy` lowers them) and
+any action table over the discretised ``partial`` state (tabular Q-learning, the search's
+table classes); :mod:`fleet_torchrl.agents.lowering` builds the arrays and tests check that
+every lowered policy decides exactly as its torch ``forward``.
+
+Per site the call returns **events**, not rewards: ticks run, trips (arrivals at ``D``),
+queue ticks, and whether its last tick brought an arrival, a failure or a queue tick. The
+objectives of :mod:`fleet_torchrl.env.objectives` turn them into rewards.
+
+Per-site parameters are always present (a single site is a batch of equal values): fleet
+size ``n_veh`` (the vehicles beyond it are parked and never touched), ``T_C``, the charging
+gain per tick, and the closure threshold (``X`` is closed in a tick iff its 32-bit draw is
+below it; 0 = never).
+"""
+
+from __future__ import annotations
+
+import types
+
+import numba
+import numpy as np
+from numba import get_thread_id, njit, prange
+
+from .config import MAX_NODES
+
+M32 = 0xFFFFFFFF
+GOLDEN = 0x9E3779B9
+C1 = 0x21F0AAAD
+C2 = 0x735A2D97
+
+# policy kinds inside the kernel
+NONE, THRESHOLD, TABLE = 0, 1, 2
+# columns of a threshold row (float32, socs and TC as the partial features: / 100, / T_C+1)
+THR_LOW, THR_FREE_UPPER, THR_MARGIN, THR_OTHERS_BELOW, THR_BUSY_TC, THR_BUSY_UPPER = range(6)
+N_THRESHOLD = 6
+N_SOC_BINS = 10
+MAXV = MAX_NODES - 2  # vehicles per site at most (distinct nodes other than C)
+MAX_THREADS = numba.config.NUMBA_NUM_THREADS  # scratch rows of the parallel kernel
+
+F32_100 = np.float32(100.0)
+F32_0 = np.float32(0.0)
+F32_SOC_SCALE = np.float32(0.01)
+F32_BINS = np.float32(N_SOC_BINS)
+F32_BIN_EPS = np.float32(1e-4)
+
+
+def mix32(x):
+    """The 32-bit finaliser of :func:`fleet_torchrl.sim.rng._mix` on int64 values < 2**32
+    (products stay below 2**63)."""
+    x = x ^ (x >> 16)
+    x = (x * C1) & M32
+    x = x ^ (x >> 15)
+    x = (x * C2) & M32
+    return x ^ (x >> 15)
+
+
+def closed_now(hs, t, threshold):
+    """Whether ``X`` is closed in tick ``t`` of the site with closure hash ``hs``."""
+    if threshold <= 0:
+        return False
+    ht = mix32((t & M32) ^ GOLDEN)
+    return mix32(hs ^ ht) < threshold
+
+
+def soc_bin(f):
+    """Bin of a normalised soc feature: ``int(f * 10 + 1e-4)`` clamped to [0, 9], in
+    float32 as :func:`fleet_torchrl.agents.tabular.state_index`."""
+    k = int(f * F32_BINS + F32_BIN_EPS)
+    if k < 0:
+        k = 0
+    if k > N_SOC_BINS - 1:
+        k = N_SOC_BINS - 1
+    return k
+
+
+def decide(P, E, L, nv, t_c, kind, row, pol_thr, pol_table, n_tc):
+    """The in-kernel policy's action (True = charge) for the vehicle at ``D`` of a site whose
+    vehicles are ``P`` (nodes), ``E`` (soc), ``L`` (charging ticks left): the ``partial``
+    features in float32, then the threshold rule or the table lookup."""
+    soc_d = F32_0
+    others = F32_100
+    tc_raw = 0
+    for v in range(nv):
+        p = P[v]
+        if p == 0:
+            soc_d = E[v]
+        elif p == 1:
+            tc_raw = L[v] + 1
+        elif E[v] < others:
+            others = E[v]
+    f0 = soc_d * F32_SOC_SCALE
+    f1 = others * F32_SOC_SCALE
+    f2 = np.float32(tc_raw) * np.float32(1.0 / (t_c + 1.0))
+    if kind == THRESHOLD:
+        if f0 <= pol_thr[row, THR_LOW]:
+            return True
+        if (tc_raw == 0 and f0 <= pol_thr[row, THR_FREE_UPPER]
+                and f0 <= f1 + pol_thr[row, THR_MARGIN]
+                and f1 <= pol_thr[row, THR_OTHERS_BELOW]):
+            return True
+        return (tc_raw > 0 and f2 <= pol_thr[row, THR_BUSY_TC]
+                and f0 <= pol_thr[row, THR_BUSY_UPPER])
+    # TABLE: cell (soc_D bin * 10 + others bin) * n_tc + TC bin; TC bin 0 = free, then
+    # n_tc - 1 equal shares of (0, 1]
+    tc_bin = 0
+    if tc_raw > 0:
+        tc_bin = 1
+        if n_tc > 2:
+            k = int(f2 * np.float32(n_tc - 1))
+            if k > n_tc - 2:
+                k = n_tc - 2
+            tc_bin = 1 + k
+    cell = (soc_bin(f0) * N_SOC_BINS + soc_bin(f1)) * n_tc + tc_bin
+    return pol_table[row, cell] != 0
+
+
+def site_run(b, pos, soc, left, charge, tick, site_hash, limit, n_veh, t_c, gain, closure,
+             succ, check, geo, energy, kind, pol_row, pol_thr, pol_table, n_tc,
+             o_ticks, o_trips, o_queue, o_arrived, o_failed, o_queued, P, L, E):
+    """Run site ``b`` from its state to a failure, its tick limit, or (``kind == NONE``) an
+    arrival at ``D``; at least one tick. ``geo``: int64 ``[stride, closed_bit,
+    leave_when_full]``; ``energy``: float32 ``[d_idle, d_move, soc_low]``; ``P``, ``L``,
+    ``E``: scratch of at least ``n_veh[b]`` entries for the site's vehicles (local copies
+    the compiler can keep in registers; the state arrays are written back at the end)."""
+    stride = geo[0]
+    closed_bit = geo[1]
+    lwf = geo[2] != 0
+    d_idle = energy[0]
+    d_move = energy[1]
+    soc_low = energy[2]
+    nv = n_veh[b]
+    tcb = t_c[b]
+    g = gain[b]
+    thr = closure[b]
+    hs = site_hash[b] & M32
+    lim = limit[b]
+    row = pol_row[b]
+    ch = charge[b]
+    t = tick[b]
+    occ = 0  # occupancy bits, kept up to date move by move
+    for v in range(nv):
+        P[v] = pos[v, b]
+        L[v] = left[v, b]
+        E[v] = soc[v, b]
+        occ |= 1 << P[v]
+    n = 0
+    trips = 0
+    queue = 0
+    arrived = False
+    failed = False
+    q = False
+    while True:
+        occ_d = (occ & 1) != 0
+        seen = occ  # what every vehicle checks: the start of the tick, a closed X occupied
+        if closed_now(hs, t, thr):
+            seen |= closed_bit
+        off = stride if ch else 0
+        into_c = False
+        arrived = False
+        failed = False
+        moved = 0
+        for v in range(nv):  # branch-free: selects, not jumps (moves follow the closures)
+            p = P[v]
+            idx = p + off
+            tgt = succ[idx]
+            charging = L[v] > 0  # a charging vehicle has no target
+            move = ((check[idx] & seen) == 0) & ~charging
+            s = E[v] + (g if charging else (d_move if move else d_idle))
+            s = F32_100 if s > F32_100 else s
+            E[v] = s
+            lf = L[v] - charging
+            # the charger ends the session on a full battery
+            lf = 0 if lwf & charging & (s >= F32_100) else lf
+            enter_c = move & (tgt == 1)
+            L[v] = tcb if enter_c else lf
+            into_c |= enter_c
+            arrived |= move & (tgt == 0)
+            moved ^= ((1 << p) ^ (1 << tgt)) if move else 0  # no two movers share a node
+            P[v] = tgt if move else p
+            failed |= s < soc_low
+        occ ^= moved
+        q = occ_d & ch & ~into_c
+        if arrived:
+            ch = False  # the newcomer at D has not decided yet
+        t += 1
+        n += 1
+        trips += arrived
+        queue += q
+        if arrived and not failed and kind != NONE:
+            ch = decide(P, E, L, nv, tcb, kind, row, pol_thr, pol_table, n_tc)
+        if failed or t >= lim or (arrived and kind == NONE):
+            break
+    for v in range(nv):
+        pos[v, b] = P[v]
+        left[v, b] = L[v]
+        soc[v, b] = E[v]
+    charge[b] = ch
+    tick[b] = t
+    o_ticks[b] = n
+    o_trips[b] = trips
+    o_queue[b] = queue
+    o_arrived[b] = arrived
+    o_failed[b] = failed
+    o_queued[b] = q
+
+
+def site(b, pos, soc, left, charge, tick, site_hash, limit, active, n_veh, t_c, gain, closure,
+         succ, check, geo, energy, kind, pol_row, pol_thr, pol_table, n_tc,
+         o_ticks, o_trips, o_queue, o_arrived, o_failed, o_queued, P, L, E):
+    """Site ``b`` of a call: :func:`site_run` if it is active, else zero events."""
+    if active[b]:
+        site_run(b, pos, soc, left, charge, tick, site_hash, limit, n_veh, t_c, gain, closure,
+                 succ, check, geo, energy, kind, pol_row, pol_thr, pol_table, n_tc,
+                 o_ticks, o_trips, o_queue, o_arrived, o_failed, o_queued, P, L, E)
+    else:
+        o_ticks[b] = 0
+        o_trips[b] = 0
+        o_queue[b] = 0
+        o_arrived[b] = False
+        o_failed[b] = False
+        o_queued[b] = False
+
+
+_jit = njit(cache=True, nogil=True)
+mix32 = _jit(mix32)
+closed_now = _jit(closed_now)
+soc_bin = _jit(soc_bin)
+decide = _jit(decide)
+site_run = _jit(site_run)
+site = _jit(site)
+# the device functions, callees first: what cuda_kernel rebinds to their CUDA versions
+DEVICE_FUNCTIONS = ("mix32", "closed_now", "soc_bin", "decide", "site_run", "site")
+
+
+@njit(cache=True, parallel=True, nogil=True)
+def advance_parallel(pos, soc, left, charge, tick, site_hash, limit, active, n_veh, t_c, gain,
+                     closure, succ, check, geo, energy, kind, pol_row, pol_thr, pol_table,
+                     n_tc, o_ticks, o_trips, o_queue, o_arrived, o_failed, o_queued):
+    """Every site of the batch, spread over the machine's cores (numba's threading layer);
+    each thread keeps its sites' vehicles in its own scratch rows."""
+    P = np.empty((MAX_THREADS, MAXV), np.int64)
+    L = np.empty((MAX_THREADS, MAXV), np.int64)
+    E = np.empty((MAX_THREADS, MAXV), np.float32)
+    for b in prange(pos.shape[1]):
+        k = get_thread_id()
+        site(b, pos, soc, left, charge, tick, site_hash, limit, active, n_veh, t_c, gain,
+             closure, succ, check, geo, energy, kind, pol_row, pol_thr, pol_table, n_tc,
+             o_ticks, o_trips, o_queue, o_arrived, o_failed, o_queued, P[k], L[k], E[k])
+
+
+@njit(cache=True, nogil=True)
+def advance_serial(pos, soc, left, charge, tick, site_hash, limit, active, n_veh, t_c, gain,
+                   closure, succ, check, geo, energy, kind, pol_row, pol_thr, pol_table,
+                   n_tc, o_ticks, o_trips, o_queue, o_arrived, o_failed, o_queued):
+    """The same on one core (small batches, one thread asked for)."""
+    P = np.empty(MAXV, np.int64)
+    L = np.empty(MAXV, np.int64)
+    E = np.empty(MAXV, np.float32)
+    for b in range(pos.shape[1]):
+        site(b, pos, soc, left, charge, tick, site_hash, limit, active, n_veh, t_c, gain,
+             closure, succ, check, geo, energy, kind, pol_row, pol_thr, pol_table, n_tc,
+             o_ticks, o_trips, o_queue, o_arrived, o_failed, o_queued, P, L, E)
+
+
+def advance_cuda(pos, soc, left, charge, tick, site_hash, limit, active, n_veh, t_c, gain,
+                 closure, succ, check, geo, energy, kind, pol_row, pol_thr, pol_table, n_tc,
+                 o_ticks, o_trips, o_queue, o_arrived, o_failed, o_queued):
+    """The CUDA kernel: one thread per site, its vehicles in thread-local arrays. Compiled
+    only by :func:`cuda_kernel` (its names ``cuda``, ``int64``, ``float32`` and the device
+    functions are bound there)."""
+    b = cuda.grid(1)  # noqa: F821 (bound by cuda_kernel)
+    if b < pos.shape[1]:
+        P = cuda.local.array(MAXV, int64)  # noqa: F821
+        L = cuda.local.array(MAXV, int64)  # noqa: F821
+        E = cuda.local.array(MAXV, float32)  # noqa: F821
+        site(b, pos, soc, left, charge, tick, site_hash, limit, active, n_veh, t_c, gain,
+             closure, succ, check, geo, energy, kind, pol_row, pol_thr, pol_table, n_tc,
+             o_ticks, o_trips, o_queue, o_arrived, o_failed, o_queued, P, L, E)
+
+
+_cuda: dict[str, object] = {}
+
+
+def cuda_kernel():
+    """The CUDA kernel (one thread per site) built from the same Python functions as the CPU
+    kernel, each call rebound to its device version. Built once per process."""
+    if "advance" in _cuda:
+        return _cuda["advance"]
+    from numba import cuda
+
+    glb = dict(globals())
+    glb.update(cuda=cuda, int64=numba.int64, float32=numba.float32)
+    for name in DEVICE_FUNCTIONS:
+        py = globals()[name].py_func
+        fn = types.FunctionType(py.__code__, glb, name, py.__defaults__, py.__closure__)
+        glb[name] = cuda.jit(device=True)(fn)
+    kernel = types.FunctionType(advance_cuda.__code__, glb, "advance_cuda")
+    _cuda["advance"] = cuda.jit(kernel)
+    return _cuda["advance"]
