@@ -45,6 +45,25 @@ def _charger_ticks(s: SiteState) -> Tensor:
     return ((s.pos == C) * (s.left + 1)).sum(0)
 
 
+def _inv_charge_span(t_c: Tensor) -> Tensor:
+    """Each site's ``1 / (T_C + 1)``, the float32 of the double (cached while ``t_c`` is
+    unchanged: sites keep their parameters for a whole episode)."""
+    inv = lambda: (1.0 / (t_c.double() + 1.0)).float()  # noqa: E731
+    if t_c.is_inference():  # (no version counter to tell a change)
+        return inv()
+    hit = _INV_CACHE.get(id(t_c))
+    if hit is not None and hit[0] is t_c and hit[1] == t_c._version:
+        return hit[2]
+    inv = inv()
+    if len(_INV_CACHE) > 64:
+        _INV_CACHE.clear()
+    _INV_CACHE[id(t_c)] = (t_c, t_c._version, inv)  # (holding t_c: its id stays its own)
+    return inv
+
+
+_INV_CACHE: dict[int, tuple[Tensor, int, Tensor]] = {}
+
+
 class Partial(Encoding):
     name = "partial"
 
@@ -55,11 +74,9 @@ class Partial(Encoding):
         soc = s.soc
         soc_d = (soc * (s.pos == D)).sum(0)
         others = torch.where(s.pos > C, soc, 100.0).amin(0)  # neither D (0) nor C (1)
-        raw = torch.stack((soc_d, others, _charger_ticks(s).to(torch.float32)), dim=1)
-        # each site's own 1 / (T_C + 1), as the float32 of the double
-        inv = (1.0 / (s.params.t_c.double() + 1.0)).float()
-        scale = torch.stack((torch.full_like(inv, 0.01), torch.full_like(inv, 0.01), inv), 1)
-        return raw * scale
+        tc = _charger_ticks(s).to(torch.float32) * _inv_charge_span(s.params.t_c)
+        # (a Python scalar multiplies a float32 tensor as its float32 value does)
+        return torch.stack((soc_d * 0.01, others * 0.01, tc), dim=1)
 
 
 class All(Encoding):

@@ -125,10 +125,10 @@ class ThesisCost(Objective):
         # the running sum of the queue ticks before the last one, then the last tick's cost
         sums, _ = self._table(("q", mdp.p_q), -_f32(mdp.p_q)).upto(
             int(ev.queue.max()) if ev.queue.numel() else 0, ev.queue.device)
-        before = sums[(ev.queue - ev.queued.long()).clamp(min=0)]
+        before = sums[ev.queue - ev.queued.long()]  # (the last tick's queue is in the count)
         last = torch.where(ev.failed, _f32(mdp.p_f), torch.where(ev.queued, _f32(mdp.p_q), 0.0))
-        cost = before - last.to(torch.float32)
-        return torch.where(ev.ticks > 0, cost / ev.ticks.clamp(min=1), 0.0)
+        # a site that ran no tick: 0 / 1 (no queue, no failure)
+        return (before - last.to(torch.float32)) / ev.ticks.clamp(min=1)
 
     def discount(self, mdp: MDPConfig) -> float:
         return mdp.gamma

@@ -22,13 +22,17 @@ ticks, what the last tick brought); the rewards are the objectives' business
 Backends (:func:`use_fused`): on the CPU the kernel is always there (numba is a dependency
 with its own LLVM; no system compiler) and compiled once per machine (numba's on-disk cache);
 on CUDA it runs when numba-cuda finds the GPU. ``fused=False`` keeps the eager tensor tick
-everywhere (the reference the kernel is tested against). On the CPU the batch is spread over
-``torch.get_num_threads()`` cores (numba's ``prange``) by numba's ``workqueue`` threading
-layer (unless ``NUMBA_THREADING_LAYER`` says otherwise): its threads sleep between calls,
-where an OpenMP pool spins and starves torch's own threads (measured: an evaluation that
-stops at every decision for a forward pass ran 10x slower beside a spinning pool). It
-survives a fork (tests/sim/test_fused.py); it is not re-entrant, so calls from several
-Python threads take turns.
+everywhere (the reference the kernel is tested against).
+
+On the CPU a call with enough work (:func:`_worth_threads`) spreads the sites over
+``torch.get_num_threads()`` cores with numba's ``prange``. Threading layer (unless
+``NUMBA_THREADING_LAYER`` says otherwise): OpenMP where the machine has it, else numba's
+``workqueue``; measured on this project's 2-core machine, waking an OpenMP pool costs ~6 us
+and the workqueue ~170 us. An OpenMP pool spins after each call and then starves torch's
+own threads (an evaluation stopping at every decision for a forward pass ran 10x slower), so
+its spin is cut short (``GOMP_SPINCOUNT``, set before numba loads its OpenMP runtime; torch's
+is loaded already). GNU OpenMP does not survive a fork: a forked child of a process whose
+pool has run uses the one-core kernel. Calls from several Python threads take turns.
 """
 
 from __future__ import annotations
@@ -39,6 +43,7 @@ import threading
 from dataclasses import dataclass
 
 import numba
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -51,9 +56,11 @@ NONE, THRESHOLD, TABLE = _k.NONE, _k.THRESHOLD, _k.TABLE
 N_THRESHOLD = _k.N_THRESHOLD
 _THREADS_PER_BLOCK = 128
 _MIN_PARALLEL = 64  # sites below which one core is faster than waking the pool
-_pool_lock = threading.Lock()  # the workqueue layer runs one parallel call at a time
+_pool_lock = threading.Lock()  # one parallel call at a time (the workqueue is not re-entrant)
+_pool = {"pid": None}  # the process whose numba thread pool has run
 if "NUMBA_THREADING_LAYER" not in os.environ:
-    numba.config.THREADING_LAYER = "workqueue"
+    numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
+    os.environ.setdefault("GOMP_SPINCOUNT", "10000")
 
 
 @dataclass
@@ -72,15 +79,30 @@ class KernelPolicy:
     n_tc: int = 2
     rows: Tensor | None = None  # [B] int64
 
-    def arrays(self, b: int, device: torch.device) -> tuple[Tensor, Tensor, Tensor]:
-        """``(rows, thresholds, table)`` as the kernel reads them, on ``device``."""
-        rows = (torch.zeros(b, dtype=torch.int64, device=device) if self.rows is None
-                else self.rows.to(device, torch.int64).expand(b).contiguous())
-        thr = (torch.zeros(1, N_THRESHOLD, dtype=torch.float32) if self.thresholds is None
-               else self.thresholds.to(torch.float32))
-        tab = (torch.zeros(1, 1, dtype=torch.int8) if self.table is None
-               else self.table.to(torch.int8))
-        return rows, thr.to(device).contiguous(), tab.to(device).contiguous()
+    def numpy_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`arrays` on the CPU as numpy views (cached)."""
+        cached = self.__dict__.get("_numpy")
+        if cached is None:
+            cached = self.__dict__["_numpy"] = tuple(
+                t.numpy() for t in self.arrays(torch.device("cpu")))
+        return cached
+
+    def arrays(self, device: torch.device) -> tuple[Tensor, Tensor, Tensor]:
+        """``(rows, thresholds, table)`` as the kernel reads them, on ``device`` (cached:
+        a policy is lowered once and used for many calls)."""
+        cached = self.__dict__.get("_arrays")
+        if cached is None or cached[0].device != device:
+            rows = (torch.zeros(1, dtype=torch.int64) if self.rows is None
+                    else self.rows.to(torch.int64).reshape(-1))
+            thr = (torch.zeros(1, N_THRESHOLD) if self.thresholds is None
+                   else self.thresholds).to(torch.float32)
+            tab = (torch.zeros(1, 1) if self.table is None else self.table).to(torch.int8)
+            cached = tuple(t.to(device).contiguous() for t in (rows, thr, tab))
+            self.__dict__["_arrays"] = cached
+        return cached
+
+
+_NO_POLICY = KernelPolicy(NONE)
 
 
 @dataclass
@@ -131,8 +153,20 @@ def use_fused(device: torch.device | str, fused: bool | None = None) -> bool:
     return ok
 
 
+def _all_active(device: torch.device) -> Tensor:
+    key = ("active", device)
+    if key not in _CONSTANTS:
+        _CONSTANTS[key] = torch.ones(1, dtype=torch.bool, device=device)
+    return _CONSTANTS[key]
+
+
+_CONSTANTS: dict[tuple, Tensor] = {}
+_LIMITS: dict[int, np.ndarray] = {}  # one-value tick limits as the CPU kernel reads them
+
+
 def _site_constants(site: Site, device: torch.device) -> tuple[Tensor, ...]:
-    """``succ``, ``check``, ``geo`` and ``energy`` of a site as the kernel reads them."""
+    """``tables`` (successors, bits checked), ``geo`` and ``energy`` of a site as the kernel
+    reads them."""
     key = ("_kernel_constants", device)
     cached = site.__dict__.get(key)
     if cached is None:
@@ -140,24 +174,72 @@ def _site_constants(site: Site, device: torch.device) -> tuple[Tensor, ...]:
         geo = torch.tensor([site._stride, site._closed_bit, int(site.leave_when_full)],
                            dtype=torch.int64)
         energy = torch.tensor([d_idle, d_move, site.soc_low], dtype=torch.float32)
-        cached = tuple(t.to(device).contiguous()
-                       for t in (site._succ, site._check, geo, energy))
+        tables = torch.stack((site._succ, site._check))
+        cached = tuple(t.to(device).contiguous() for t in (tables, geo, energy))
         site.__dict__[key] = cached
     return cached
 
 
+_STATE = (("pos", torch.int64), ("soc", torch.float32), ("left", torch.int64),
+          ("charge", torch.bool), ("tick", torch.int64))
+_PARAMS = (("n_vehicles", torch.int64), ("t_c", torch.int64), ("gain", torch.float32),
+           ("closure", torch.int64))
+
+
 def _contiguous(s: SiteState) -> None:
-    for name, dtype in (("pos", torch.int64), ("soc", torch.float32), ("left", torch.int64),
-                        ("charge", torch.bool), ("tick", torch.int64)):
-        t = getattr(s, name)
-        if t.dtype != dtype or not t.is_contiguous():
-            setattr(s, name, t.to(dtype).contiguous())
+    for obj, spec in ((s, _STATE), (s.params, _PARAMS)):
+        for name, dtype in spec:
+            t = getattr(obj, name)
+            if t.dtype != dtype or not t.is_contiguous():
+                setattr(obj, name, t.to(dtype).contiguous())
+
+
+def _site_arrays(site: Site) -> tuple[np.ndarray, ...]:
+    cached = site.__dict__.get("_kernel_arrays")
+    if cached is None:
+        cached = site.__dict__["_kernel_arrays"] = tuple(
+            t.numpy() for t in _site_constants(site, torch.device("cpu")))
+    return cached
+
+
+_last_view: list = [None, None]  # the tensor of the last _numpy_of call, and its view
+
+
+def _numpy_of(t: Tensor, dtype: torch.dtype) -> np.ndarray:
+    """A numpy view of a CPU tensor as ``dtype`` (the last one is remembered: callers pass
+    the same closure hashes call after call)."""
+    if _last_view[0] is t:
+        return _last_view[1]
+    out = t.to(dtype).reshape(-1).contiguous().numpy()
+    if t.dtype == dtype and t.is_contiguous():
+        _last_view[0], _last_view[1] = t, out
+    return out
+
+
+def _state_tensors(s: SiteState) -> tuple[Tensor, ...]:
     p = s.params
-    for name, dtype in (("n_vehicles", torch.int64), ("t_c", torch.int64),
-                        ("gain", torch.float32), ("closure", torch.int64)):
-        t = getattr(p, name)
-        if t.dtype != dtype or not t.is_contiguous():
-            setattr(p, name, t.to(dtype).contiguous())
+    return (s.pos, s.soc, s.left, s.charge, s.tick, p.n_vehicles, p.t_c, p.gain, p.closure)
+
+
+def _state_arrays(s: SiteState) -> list[np.ndarray]:
+    """Numpy views of a CPU state's tensors, cached on the state while its tensors stay the
+    same objects (the kernel updates them in place; the eager tick replaces some)."""
+    tensors = _state_tensors(s)
+    cached = s.__dict__.get("_kernel_views")
+    if cached is not None and all(a is b for a, b in zip(cached[0], tensors, strict=True)):
+        return cached[1]
+    _contiguous(s)
+    tensors = _state_tensors(s)
+    arrays = [t.numpy() for t in tensors]
+    s.__dict__["_kernel_views"] = (tensors, arrays)
+    return arrays
+
+
+def _check_lengths(b: int, **arrays) -> None:
+    for name, a in arrays.items():
+        if a.shape[0] not in (1, b):
+            raise ValueError(f"{name} must hold one value or one per site ({b}), not "
+                             f"{a.shape[0]}")
 
 
 def advance(site: Site, state: SiteState, site_hash: Tensor, max_ticks: Tensor | int,
@@ -174,58 +256,102 @@ def advance(site: Site, state: SiteState, site_hash: Tensor, max_ticks: Tensor |
     the CUDA kernel. ``target="cuda"`` on CPU tensors runs the CUDA kernel under numba's
     CUDA simulator (``NUMBA_ENABLE_CUDASIM=1``; tests).
     """
-    dev = state.pos.device
-    _contiguous(state)
-    b = state.pos.shape[1]
     if state.pos.shape[0] > _k.MAXV:
         raise ValueError(f"the kernel handles at most {_k.MAXV} vehicles per site")
-    kw = dict(dtype=torch.int64, device=dev)
-    limit = (torch.as_tensor(max_ticks, **kw).expand(b).contiguous())
-    act = (torch.ones(b, dtype=torch.bool, device=dev) if active is None
-           else active.to(dev, torch.bool).contiguous())
-    hsh = site_hash.to(dev, torch.int64).contiguous()
-    pol = policy or KernelPolicy(NONE)
-    rows, thr, tab = pol.arrays(b, dev)
-    succ, check, geo, energy = _site_constants(site, dev)
-    ints = torch.empty(3, b, **kw)
-    flags = torch.empty(3, b, dtype=torch.bool, device=dev)
-    p = state.params
-    args = [state.pos, state.soc, state.left, state.charge, state.tick, hsh, limit, act,
-            p.n_vehicles, p.t_c, p.gain, p.closure, succ, check, geo, energy, pol.kind, rows,
-            thr, tab, int(pol.n_tc), ints[0], ints[1], ints[2], flags[0], flags[1], flags[2]]
-    if target == "cuda" or dev.type == "cuda":
-        _launch_cuda(args, b, simulated=dev.type != "cuda")
+    pol = policy or _NO_POLICY
+    if state.pos.device.type == "cpu" and target is None:
+        return _advance_cpu(site, state, site_hash, max_ticks, active, pol)
+    return _advance_device(site, state, site_hash, max_ticks, active, pol, target)
+
+
+def _advance_cpu(site: Site, state: SiteState, site_hash: Tensor, max_ticks: Tensor | int,
+                 active: Tensor | None, pol: KernelPolicy) -> Events:
+    """:func:`advance` on CPU tensors: numpy views (cached where they can be) straight into
+    the numba kernel, a few microseconds of Python per call."""
+    pos, soc, left, charge, tick, n_veh, t_c, gain, closure = _state_arrays(state)
+    b = pos.shape[1]
+    if isinstance(max_ticks, Tensor):
+        limit = max_ticks.to(torch.int64).reshape(-1).contiguous().numpy()
     else:
-        _launch_cpu(args, b)
-    return Events(ticks=ints[0], trips=ints[1], queue=ints[2], arrived=flags[0],
-                  failed=flags[1], queued=flags[2])
-
-
-def _launch_cpu(args: list, b: int) -> None:
-    arrays = [a.numpy() if isinstance(a, Tensor) else a for a in args]
+        limit = _LIMITS.get(max_ticks)
+        if limit is None:
+            limit = np.full(1, max_ticks, dtype=np.int64)
+            if len(_LIMITS) < 256:
+                _LIMITS[max_ticks] = limit
+    act = (_k.ALL_ACTIVE if active is None
+           else active.to(torch.bool).reshape(-1).contiguous().numpy())
+    hsh = _numpy_of(site_hash, torch.int64)
+    rows, thr, tab = pol.numpy_arrays()
+    _check_lengths(b, max_ticks=limit, active=act, policy_rows=rows, site_hash=hsh)
+    tables, geo, energy = _site_arrays(site)
+    ints = np.empty((3, b), dtype=np.int64)
+    flags = np.empty((3, b), dtype=np.bool_)
+    args = (pos, soc, left, charge, tick, hsh, limit, act, n_veh, t_c, gain, closure, tables,
+            geo, energy, pol.kind, rows, thr, tab, pol.n_tc, ints, flags)
     threads = min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)
-    if threads > 1 and b >= _MIN_PARALLEL:
+    forked = _pool["pid"] not in (None, os.getpid())  # a child of a process with a pool
+    if threads > 1 and not forked and _worth_threads(b, limit, tick, pol):
         with _pool_lock:
             numba.set_num_threads(threads)
-            _k.advance_parallel(*arrays)
+            _pool["pid"] = os.getpid()
+            _k.advance_parallel(*args)
     else:
-        _k.advance_serial(*arrays)
+        _k.advance_serial(*args)
+    i, f = [torch.from_numpy(r) for r in ints], [torch.from_numpy(r) for r in flags]
+    return Events(ticks=i[0], trips=i[1], queue=i[2], arrived=f[0], failed=f[1], queued=f[2])
 
 
-def _launch_cuda(args: list, b: int, simulated: bool) -> None:
+# site-ticks a call must promise before it wakes the thread pool (a site-tick: ~20 ns on one
+# core; waking the pool: ~6 us with OpenMP, ~170 us with the workqueue)
+_PARALLEL_WORK = 4_000 if numba.config.THREADING_LAYER_PRIORITY[0] == "omp" else 50_000
+_TICKS_PER_DECISION = 10  # a site stopping at its next decision runs about this many ticks
+
+
+def _worth_threads(b: int, limit: np.ndarray, tick: np.ndarray, pol: KernelPolicy) -> bool:
+    if b < _MIN_PARALLEL:
+        return False
+    if pol.kind == NONE:
+        return b * _TICKS_PER_DECISION >= _PARALLEL_WORK
+    span = int(limit.mean()) - int(tick.mean()) if limit.shape[0] > 1 else \
+        int(limit[0]) - int(tick.min())
+    return b * max(span, 1) >= _PARALLEL_WORK
+
+
+def _advance_device(site: Site, state: SiteState, site_hash: Tensor, max_ticks: Tensor | int,
+                    active: Tensor | None, pol: KernelPolicy, target: str | None) -> Events:
+    """:func:`advance` with the CUDA kernel: on CUDA tensors, or on CPU tensors under numba's
+    CUDA simulator (``target="cuda"``)."""
     from numba import cuda
 
+    dev = state.pos.device
+    simulated = dev.type != "cuda"
+    if simulated and not numba.config.ENABLE_CUDASIM:
+        raise RuntimeError("target='cuda' on CPU tensors needs NUMBA_ENABLE_CUDASIM=1")
+    _contiguous(state)
+    b = state.pos.shape[1]
+    kw = dict(dtype=torch.int64, device=dev)
+    limit = torch.as_tensor(max_ticks, **kw).reshape(-1).contiguous()
+    act = (_all_active(dev) if active is None else
+           active.to(dev, torch.bool).reshape(-1).contiguous())
+    hsh = site_hash.to(dev, torch.int64).contiguous()
+    rows, thr, tab = pol.arrays(dev)
+    _check_lengths(b, max_ticks=limit, active=act, policy_rows=rows, site_hash=hsh)
+    tables, geo, energy = _site_constants(site, dev)
+    ints = torch.empty(3, b, **kw)
+    flags = torch.empty(3, b, dtype=torch.bool, device=dev)
+    args = [*_state_tensors(state)[:5], hsh, limit, act, *_state_tensors(state)[5:], tables,
+            geo, energy, pol.kind, rows, thr, tab, int(pol.n_tc), ints, flags]
     kernel = _k.cuda_kernel()
     blocks = (b + _THREADS_PER_BLOCK - 1) // _THREADS_PER_BLOCK
     if simulated:  # numba's CUDA simulator works on host arrays in place
-        if not numba.config.ENABLE_CUDASIM:
-            raise RuntimeError("target='cuda' on CPU tensors needs NUMBA_ENABLE_CUDASIM=1")
         kernel[blocks, _THREADS_PER_BLOCK](*[a.numpy() if isinstance(a, Tensor) else a
                                              for a in args])
-        return
-    stream = cuda.external_stream(torch.cuda.current_stream().cuda_stream)
-    kernel[blocks, _THREADS_PER_BLOCK, stream](*[cuda.as_cuda_array(a) if isinstance(a, Tensor)
-                                                 else a for a in args])
+    else:
+        stream = cuda.external_stream(torch.cuda.current_stream().cuda_stream)
+        kernel[blocks, _THREADS_PER_BLOCK, stream](
+            *[cuda.as_cuda_array(a) if isinstance(a, Tensor) else a for a in args])
+    return Events(ticks=ints[0], trips=ints[1], queue=ints[2], arrived=flags[0],
+                  failed=flags[1], queued=flags[2])
 
 
 __all__ = ["NONE", "TABLE", "THRESHOLD", "Events", "KernelPolicy", "advance", "available",

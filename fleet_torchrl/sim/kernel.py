@@ -1,14 +1,14 @@
 """The compiled simulation kernel: every site runs its own ticks, compiled by numba.
 
-One source, two targets. The functions below up to :func:`site_run` are plain Python in the
+One source, two targets. The functions below up to :func:`run_sites` are plain Python in the
 subset numba compiles for both the CPU (``numba.njit``, cached on disk per machine) and
 CUDA (``numba.cuda.jit(device=True)``, built by :func:`cuda_kernel` from the same Python
 functions with their calls rebound to the device versions). Nothing here knows torch; the
 callers (:mod:`fleet_torchrl.sim.fused`) pass numpy views of the state tensors (CPU) or
 CUDA array views (GPU), which the kernel updates in place.
 
-What one call does, per active site ``b``, on its own (a thread on the GPU, a ``prange``
-iteration on the CPU): it runs the tick of :mod:`fleet_torchrl.sim.site`, rule for rule and
+What one call does, per active site ``b``, on its own (a thread on the GPU, ``prange`` over
+chunks of sites on the CPU): it runs the tick of :mod:`fleet_torchrl.sim.site`, rule for rule and
 bit for bit (the same closure hash, the same float32 energy arithmetic: add the tick's
 delta, then cap at 100; numba does not contract ``a * b + c`` into a fused multiply-add
 without ``fastmath``), until the first of
@@ -24,13 +24,14 @@ as :class:`fleet_torchrl.env.encodings.Partial` computes them in float32, and th
 on: a whole evaluation is one call. The policies are the rule, the heuristic and the
 threshold class (:class:`fleet_torchrl.agents.threshold.ThresholdPolicy` lowers them) and
 any action table over the discretised ``partial`` state (tabular Q-learning, the search's
-table classes); :mod:`fleet_torchrl.agents.lowering` builds the arrays and tests check that
-every lowered policy decides exactly as its torch ``forward``.
+table classes); each policy class builds its arrays (``Policy.kernel_policy``) and tests
+check that every one decides exactly as its torch ``forward``.
 
 Per site the call returns **events**, not rewards: ticks run, trips (arrivals at ``D``),
 queue ticks, and whether its last tick brought an arrival, a failure or a queue tick. The
 objectives of :mod:`fleet_torchrl.env.objectives` turn them into rewards.
 
+``limit``, ``active`` and ``pol_row`` hold one value per site or one for all (length 1).
 Per-site parameters are always present (a single site is a batch of equal values): fleet
 size ``n_veh`` (the vehicles beyond it are parked and never touched), ``T_C``, the charging
 gain per tick, and the closure threshold (``X`` is closed in a tick iff its 32-bit draw is
@@ -66,6 +67,7 @@ F32_0 = np.float32(0.0)
 F32_SOC_SCALE = np.float32(0.01)
 F32_BINS = np.float32(N_SOC_BINS)
 F32_BIN_EPS = np.float32(1e-4)
+ALL_ACTIVE = np.ones(1, dtype=np.bool_)  # ``active`` of a call that runs every site
 
 
 def mix32(x):
@@ -97,19 +99,19 @@ def soc_bin(f):
     return k
 
 
-def decide(P, E, L, nv, t_c, kind, row, pol_thr, pol_table, n_tc):
+def decide(PL, E, nv, t_c, kind, row, pol_thr, pol_table, n_tc):
     """The in-kernel policy's action (True = charge) for the vehicle at ``D`` of a site whose
-    vehicles are ``P`` (nodes), ``E`` (soc), ``L`` (charging ticks left): the ``partial``
+    vehicles are ``PL`` (nodes, charging ticks left) and ``E`` (soc): the ``partial``
     features in float32, then the threshold rule or the table lookup."""
     soc_d = F32_0
     others = F32_100
     tc_raw = 0
     for v in range(nv):
-        p = P[v]
+        p = PL[0, v]
         if p == 0:
             soc_d = E[v]
         elif p == 1:
-            tc_raw = L[v] + 1
+            tc_raw = PL[1, v] + 1
         elif E[v] < others:
             others = E[v]
     f0 = soc_d * F32_SOC_SCALE
@@ -138,168 +140,166 @@ def decide(P, E, L, nv, t_c, kind, row, pol_thr, pol_table, n_tc):
     return pol_table[row, cell] != 0
 
 
-def site_run(b, pos, soc, left, charge, tick, site_hash, limit, n_veh, t_c, gain, closure,
-             succ, check, geo, energy, kind, pol_row, pol_thr, pol_table, n_tc,
-             o_ticks, o_trips, o_queue, o_arrived, o_failed, o_queued, P, L, E):
-    """Run site ``b`` from its state to a failure, its tick limit, or (``kind == NONE``) an
-    arrival at ``D``; at least one tick. ``geo``: int64 ``[stride, closed_bit,
-    leave_when_full]``; ``energy``: float32 ``[d_idle, d_move, soc_low]``; ``P``, ``L``,
-    ``E``: scratch of at least ``n_veh[b]`` entries for the site's vehicles (local copies
-    the compiler can keep in registers; the state arrays are written back at the end)."""
+def run_sites(b0, b1, pos, soc, left, charge, tick, site_hash, limit, active, n_veh, t_c,
+              gain, closure, tables, geo, energy, kind, pol_row, pol_thr, pol_table, n_tc,
+              o_int, o_flag, PL, E):
+    """Run each active site ``b0 <= b < b1`` from its state to a failure, its tick limit, or
+    (``kind == NONE``) an arrival at ``D``, at least one tick; an inactive site gets zero
+    events. ``tables``: int64 ``[successor, bits checked]`` per node and decision; ``geo``:
+    int64 ``[stride, closed_bit, leave_when_full]``; ``energy``: float32 ``[d_idle, d_move,
+    soc_low]``; ``o_int``: ``[ticks, trips, queue]`` and ``o_flag``: ``[arrived, failed,
+    queued]`` per site; ``PL`` (int64, rows: nodes, ticks left) and ``E`` (soc): scratch
+    for a site's vehicles (local copies the compiler keeps in registers; the state arrays
+    are written back at the end). A CUDA thread runs one site (``b1 = b0 + 1``).
+
+    Speed notes, measured: a range of sites per call, not one, because numba
+    reference-counts every array passed to a call (or sliced) with atomic operations, ~0.2 us
+    per site and call with the 25 arrays here, as much as the ticks of a decision epoch; and
+    fewer than 30 arguments per call (beyond that CPython passes them as one tuple, which
+    numba's inliner refuses)."""
     stride = geo[0]
     closed_bit = geo[1]
     lwf = geo[2] != 0
     d_idle = energy[0]
     d_move = energy[1]
     soc_low = energy[2]
-    nv = n_veh[b]
-    tcb = t_c[b]
-    g = gain[b]
-    thr = closure[b]
-    hs = site_hash[b] & M32
-    lim = limit[b]
-    row = pol_row[b]
-    ch = charge[b]
-    t = tick[b]
-    occ = 0  # occupancy bits, kept up to date move by move
-    for v in range(nv):
-        P[v] = pos[v, b]
-        L[v] = left[v, b]
-        E[v] = soc[v, b]
-        occ |= 1 << P[v]
-    n = 0
-    trips = 0
-    queue = 0
-    arrived = False
-    failed = False
-    q = False
-    while True:
-        occ_d = (occ & 1) != 0
-        seen = occ  # what every vehicle checks: the start of the tick, a closed X occupied
-        if closed_now(hs, t, thr):
-            seen |= closed_bit
-        off = stride if ch else 0
-        into_c = False
+    na = active.shape[0]  # active, limit, pol_row: one value per site, or one for all
+    nl = limit.shape[0]
+    nr = pol_row.shape[0]
+    for b in range(b0, b1):
+        if not active[b % na]:
+            for k in range(3):
+                o_int[k, b] = 0
+                o_flag[k, b] = False
+            continue
+        nv = n_veh[b]
+        tcb = t_c[b]
+        g = gain[b]
+        thr = closure[b]
+        hs = site_hash[b] & M32
+        lim = limit[b % nl]
+        row = pol_row[b % nr]
+        ch = charge[b]
+        t = tick[b]
+        occ = 0  # occupancy bits, kept up to date move by move
+        for v in range(nv):
+            PL[0, v] = pos[v, b]
+            PL[1, v] = left[v, b]
+            E[v] = soc[v, b]
+            occ |= 1 << PL[0, v]
+        n = 0
+        trips = 0
+        queue = 0
         arrived = False
         failed = False
-        moved = 0
-        for v in range(nv):  # branch-free: selects, not jumps (moves follow the closures)
-            p = P[v]
-            idx = p + off
-            tgt = succ[idx]
-            charging = L[v] > 0  # a charging vehicle has no target
-            move = ((check[idx] & seen) == 0) & ~charging
-            s = E[v] + (g if charging else (d_move if move else d_idle))
-            s = F32_100 if s > F32_100 else s
-            E[v] = s
-            lf = L[v] - charging
-            # the charger ends the session on a full battery
-            lf = 0 if lwf & charging & (s >= F32_100) else lf
-            enter_c = move & (tgt == 1)
-            L[v] = tcb if enter_c else lf
-            into_c |= enter_c
-            arrived |= move & (tgt == 0)
-            moved ^= ((1 << p) ^ (1 << tgt)) if move else 0  # no two movers share a node
-            P[v] = tgt if move else p
-            failed |= s < soc_low
-        occ ^= moved
-        q = occ_d & ch & ~into_c
-        if arrived:
-            ch = False  # the newcomer at D has not decided yet
-        t += 1
-        n += 1
-        trips += arrived
-        queue += q
-        if arrived and not failed and kind != NONE:
-            ch = decide(P, E, L, nv, tcb, kind, row, pol_thr, pol_table, n_tc)
-        if failed or t >= lim or (arrived and kind == NONE):
-            break
-    for v in range(nv):
-        pos[v, b] = P[v]
-        left[v, b] = L[v]
-        soc[v, b] = E[v]
-    charge[b] = ch
-    tick[b] = t
-    o_ticks[b] = n
-    o_trips[b] = trips
-    o_queue[b] = queue
-    o_arrived[b] = arrived
-    o_failed[b] = failed
-    o_queued[b] = q
-
-
-def site(b, pos, soc, left, charge, tick, site_hash, limit, active, n_veh, t_c, gain, closure,
-         succ, check, geo, energy, kind, pol_row, pol_thr, pol_table, n_tc,
-         o_ticks, o_trips, o_queue, o_arrived, o_failed, o_queued, P, L, E):
-    """Site ``b`` of a call: :func:`site_run` if it is active, else zero events."""
-    if active[b]:
-        site_run(b, pos, soc, left, charge, tick, site_hash, limit, n_veh, t_c, gain, closure,
-                 succ, check, geo, energy, kind, pol_row, pol_thr, pol_table, n_tc,
-                 o_ticks, o_trips, o_queue, o_arrived, o_failed, o_queued, P, L, E)
-    else:
-        o_ticks[b] = 0
-        o_trips[b] = 0
-        o_queue[b] = 0
-        o_arrived[b] = False
-        o_failed[b] = False
-        o_queued[b] = False
+        q = False
+        while True:
+            occ_d = (occ & 1) != 0
+            seen = occ  # what every vehicle checks: the tick's start, a closed X occupied
+            if closed_now(hs, t, thr):
+                seen |= closed_bit
+            off = stride if ch else 0
+            into_c = False
+            arrived = False
+            failed = False
+            moved = 0
+            for v in range(nv):  # branch-free: selects, not jumps (moves follow closures)
+                p = PL[0, v]
+                idx = p + off
+                tgt = tables[0, idx]
+                charging = PL[1, v] > 0  # a charging vehicle has no target
+                move = ((tables[1, idx] & seen) == 0) & ~charging
+                s = E[v] + (g if charging else (d_move if move else d_idle))
+                s = F32_100 if s > F32_100 else s
+                E[v] = s
+                lf = PL[1, v] - charging
+                # the charger ends the session on a full battery
+                lf = 0 if lwf & charging & (s >= F32_100) else lf
+                enter_c = move & (tgt == 1)
+                PL[1, v] = tcb if enter_c else lf
+                into_c |= enter_c
+                arrived |= move & (tgt == 0)
+                moved ^= ((1 << p) ^ (1 << tgt)) if move else 0  # no two movers share a node
+                PL[0, v] = tgt if move else p
+                failed |= s < soc_low
+            occ ^= moved
+            q = occ_d & ch & ~into_c
+            if arrived:
+                ch = False  # the newcomer at D has not decided yet
+            t += 1
+            n += 1
+            trips += arrived
+            queue += q
+            if arrived and not failed and kind != NONE:
+                ch = decide(PL, E, nv, tcb, kind, row, pol_thr, pol_table, n_tc)
+            if failed or t >= lim or (arrived and kind == NONE):
+                break
+        for v in range(nv):
+            pos[v, b] = PL[0, v]
+            left[v, b] = PL[1, v]
+            soc[v, b] = E[v]
+        charge[b] = ch
+        tick[b] = t
+        o_int[0, b] = n
+        o_int[1, b] = trips
+        o_int[2, b] = queue
+        o_flag[0, b] = arrived
+        o_flag[1, b] = failed
+        o_flag[2, b] = q
 
 
 _jit = njit(cache=True, nogil=True)
 mix32 = _jit(mix32)
 closed_now = _jit(closed_now)
 soc_bin = _jit(soc_bin)
-decide = _jit(decide)
-site_run = _jit(site_run)
-site = _jit(site)
+decide = njit(cache=True, nogil=True, inline="always")(decide)
+run_sites = _jit(run_sites)
 # the device functions, callees first: what cuda_kernel rebinds to their CUDA versions
-DEVICE_FUNCTIONS = ("mix32", "closed_now", "soc_bin", "decide", "site_run", "site")
+DEVICE_FUNCTIONS = ("mix32", "closed_now", "soc_bin", "decide", "run_sites")
+CHUNK = 64  # sites per run_sites call of the parallel kernel
 
 
 @njit(cache=True, parallel=True, nogil=True)
 def advance_parallel(pos, soc, left, charge, tick, site_hash, limit, active, n_veh, t_c, gain,
-                     closure, succ, check, geo, energy, kind, pol_row, pol_thr, pol_table,
-                     n_tc, o_ticks, o_trips, o_queue, o_arrived, o_failed, o_queued):
-    """Every site of the batch, spread over the machine's cores (numba's threading layer);
-    each thread keeps its sites' vehicles in its own scratch rows."""
-    P = np.empty((MAX_THREADS, MAXV), np.int64)
-    L = np.empty((MAX_THREADS, MAXV), np.int64)
+                     closure, tables, geo, energy, kind, pol_row, pol_thr, pol_table, n_tc,
+                     o_int, o_flag):
+    """Every site of the batch, chunks of sites spread over the machine's cores (numba's
+    threading layer); each thread keeps a site's vehicles in its own scratch rows."""
+    PL = np.empty((MAX_THREADS, 2, MAXV), np.int64)
     E = np.empty((MAX_THREADS, MAXV), np.float32)
-    for b in prange(pos.shape[1]):
+    nb = pos.shape[1]
+    for c in prange((nb + CHUNK - 1) // CHUNK):
         k = get_thread_id()
-        site(b, pos, soc, left, charge, tick, site_hash, limit, active, n_veh, t_c, gain,
-             closure, succ, check, geo, energy, kind, pol_row, pol_thr, pol_table, n_tc,
-             o_ticks, o_trips, o_queue, o_arrived, o_failed, o_queued, P[k], L[k], E[k])
+        run_sites(c * CHUNK, min(nb, (c + 1) * CHUNK), pos, soc, left, charge, tick,
+                  site_hash, limit, active, n_veh, t_c, gain, closure, tables, geo, energy,
+                  kind, pol_row, pol_thr, pol_table, n_tc, o_int, o_flag, PL[k], E[k])
 
 
 @njit(cache=True, nogil=True)
 def advance_serial(pos, soc, left, charge, tick, site_hash, limit, active, n_veh, t_c, gain,
-                   closure, succ, check, geo, energy, kind, pol_row, pol_thr, pol_table,
-                   n_tc, o_ticks, o_trips, o_queue, o_arrived, o_failed, o_queued):
-    """The same on one core (small batches, one thread asked for)."""
-    P = np.empty(MAXV, np.int64)
-    L = np.empty(MAXV, np.int64)
+                   closure, tables, geo, energy, kind, pol_row, pol_thr, pol_table, n_tc,
+                   o_int, o_flag):
+    """The same on one core (small batches, short calls, one thread asked for)."""
+    PL = np.empty((2, MAXV), np.int64)
     E = np.empty(MAXV, np.float32)
-    for b in range(pos.shape[1]):
-        site(b, pos, soc, left, charge, tick, site_hash, limit, active, n_veh, t_c, gain,
-             closure, succ, check, geo, energy, kind, pol_row, pol_thr, pol_table, n_tc,
-             o_ticks, o_trips, o_queue, o_arrived, o_failed, o_queued, P, L, E)
+    run_sites(0, pos.shape[1], pos, soc, left, charge, tick, site_hash, limit, active, n_veh,
+              t_c, gain, closure, tables, geo, energy, kind, pol_row, pol_thr, pol_table, n_tc,
+              o_int, o_flag, PL, E)
 
 
 def advance_cuda(pos, soc, left, charge, tick, site_hash, limit, active, n_veh, t_c, gain,
-                 closure, succ, check, geo, energy, kind, pol_row, pol_thr, pol_table, n_tc,
-                 o_ticks, o_trips, o_queue, o_arrived, o_failed, o_queued):
+                 closure, tables, geo, energy, kind, pol_row, pol_thr, pol_table, n_tc,
+                 o_int, o_flag):
     """The CUDA kernel: one thread per site, its vehicles in thread-local arrays. Compiled
     only by :func:`cuda_kernel` (its names ``cuda``, ``int64``, ``float32`` and the device
     functions are bound there)."""
     b = cuda.grid(1)  # noqa: F821 (bound by cuda_kernel)
     if b < pos.shape[1]:
-        P = cuda.local.array(MAXV, int64)  # noqa: F821
-        L = cuda.local.array(MAXV, int64)  # noqa: F821
+        PL = cuda.local.array((2, MAXV), int64)  # noqa: F821
         E = cuda.local.array(MAXV, float32)  # noqa: F821
-        site(b, pos, soc, left, charge, tick, site_hash, limit, active, n_veh, t_c, gain,
-             closure, succ, check, geo, energy, kind, pol_row, pol_thr, pol_table, n_tc,
-             o_ticks, o_trips, o_queue, o_arrived, o_failed, o_queued, P, L, E)
+        run_sites(b, b + 1, pos, soc, left, charge, tick, site_hash, limit, active, n_veh,
+                  t_c, gain, closure, tables, geo, energy, kind, pol_row, pol_thr, pol_table,
+                  n_tc, o_int, o_flag, PL, E)
 
 
 _cuda: dict[str, object] = {}
