@@ -170,7 +170,7 @@ class DQNPolicy(Policy):
         if anchor != "none":  # the heuristic of MODEL §3, with its parameters fixed here
             self.base = HeuristicPolicy(**(anchor_params or {}))
 
-    def spec(self) -> dict[str, Any]:
+    def policy_spec(self) -> dict[str, Any]:
         out = {"network": asdict(self.network), "n_obs": self.n_obs, "encoding": self.encoding}
         if self.anchor != "none":
             b = self.base
@@ -180,7 +180,7 @@ class DQNPolicy(Policy):
         return out
 
     @classmethod
-    def from_spec(cls, spec: dict[str, Any]) -> DQNPolicy:
+    def from_policy_spec(cls, spec: dict[str, Any]) -> DQNPolicy:
         return cls(NetworkConfig(**spec["network"]), spec["n_obs"], spec["encoding"],
                    spec.get("anchor", "none"), spec.get("anchor_margin", 0.0),
                    spec.get("anchor_params"))

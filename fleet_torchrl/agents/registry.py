@@ -119,7 +119,7 @@ def load_policy_file(path: str | Path, device: str | torch.device = "cpu") -> Po
     if spec is None or not spec.trainable:
         raise ValueError(f"{path}: unknown policy kind {kind!r}")
     try:
-        policy = spec.policy_class.from_spec(bundle["spec"])
+        policy = spec.policy_class.from_policy_spec(bundle["spec"])
         policy.load_state_dict(bundle["state_dict"])
     except (RuntimeError, TypeError, KeyError) as e:
         raise ValueError(f"{path}: weights do not fit the {kind} policy ({e})") from None
