@@ -97,6 +97,11 @@ class DQNAgentConfig(AgentConfig):
                               "use one of them or agent.anchor=none")
         return self
 
+    def run_suffix(self, mdp: Any) -> str:
+        """The objective's suffix, then ``_anchored`` for a policy anchored to the heuristic:
+        it acts unlike a plain DQN of the same recipe and must not replace one."""
+        return super().run_suffix(mdp) + ("" if self.anchor == "none" else "_anchored")
+
 
 @dataclass
 class NetworkConfig:
