@@ -211,14 +211,16 @@ class FleetChargingEnv(EnvBase):
         """Restore what :meth:`state_dict` wrote. ``strict=False`` (what TorchRL's
         ``EnvCreator``, and so ``ParallelEnv``, pass, with every tensor left out of the dict)
         keeps the current value of each entry that is missing; ``strict=True`` refuses a dict
-        that lacks any, as ``nn.Module`` does."""
+        that lacks any, as ``nn.Module`` does, except the sites' drawn parameters, which are
+        kept if absent either way."""
         state_dict = dict(state_dict)
         dev = self.device
-        own = [f"site.{name}" for name in self._DYNAMIC]
-        if self.state.params is not None:
-            own += [f"site.params.{name}" for name in self._PARAMS]
-        own += ["site.hash", "site.trips", "site.queue", "seed"]
-        missing = [key for key in own if key not in state_dict]
+        required = [f"site.{name}" for name in self._DYNAMIC]
+        required += ["site.hash", "site.trips", "site.queue", "seed"]
+        params = [f"site.params.{name}" for name in self._PARAMS] \
+            if self.state.params is not None else []
+        own = required + params
+        missing = [key for key in required if key not in state_dict]
         if strict and missing:
             raise RuntimeError(f"missing key(s) in the state_dict of {type(self).__name__}: "
                                f"{', '.join(missing)}")

@@ -14,6 +14,7 @@ from torchrl.envs import EnvCreator, ParallelEnv
 
 from fleet_torchrl.agents import HeuristicPolicy, RulePolicy, as_td_module
 from fleet_torchrl.env import FleetChargingEnv
+from fleet_torchrl.sim import SiteConfig
 
 SITES, STEPS = 4, 12
 
@@ -126,3 +127,22 @@ def test_collector_runs_a_wrapped_project_policy(make):
     alone = FleetChargingEnv(num_sites=SITES, seed=0).rollout(
         10, as_td_module(policy), break_when_any_done=False)
     assert torch.equal(batches[0]["next", "observation"], alone["next", "observation"])
+
+
+def test_load_state_dict_keeps_drawn_site_parameters_that_are_absent():
+    from fleet_torchrl.sim import SiteRanges
+
+    site = SiteConfig(ranges=SiteRanges(n_vehicles=[1, 5], p_c=[0.0, 0.9], t_c=[10, 50]))
+    env = FleetChargingEnv(site=site, num_sites=SITES, seed=4)
+    sd = env.state_dict()
+    params = {k: v for k, v in sd.items() if k.startswith("site.params.")}
+    assert params  # a distribution's checkpoint holds its draws
+    other = FleetChargingEnv(site=site, num_sites=SITES, seed=5)
+    other.load_state_dict({k: v for k, v in sd.items() if k not in params}, strict=True)
+    assert int(other.state_dict()["seed"]) == int(sd["seed"])
+    kept = other.state_dict()
+    fresh = FleetChargingEnv(site=site, num_sites=SITES, seed=5).state_dict()
+    assert not all(torch.equal(v, fresh[k]) for k, v in params.items())  # seeds draw apart
+    assert all(torch.equal(kept[k], fresh[k]) for k in params)  # its own draws, kept
+    other.load_state_dict(sd)
+    assert all(torch.equal(other.state_dict()[k], v) for k, v in params.items())
