@@ -13,6 +13,7 @@ import hashlib
 import json
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
+from importlib import resources
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -65,7 +66,8 @@ class AgentSpec:
         return name + cfg.agent.run_suffix(cfg.mdp) + site_suffix(cfg.site)
 
 
-_SITE_PRESETS = Path(__file__).resolve().parents[1] / "conf" / "site"
+# the packaged site presets, wherever in the package this module lives
+_SITE_PRESETS = resources.files(__name__.split(".")[0]).joinpath("conf", "site")
 
 
 @functools.cache
@@ -73,7 +75,7 @@ def site_preset(name: str) -> SiteConfig | None:
     """The site ``conf/site/<name>.yaml`` defines (its ``defaults`` chain followed), or None
     if the package has no such preset. Plain YAML, no Hydra: this layer stays below the
     config (tests/agents/test_registry.py checks it against Hydra's composition)."""
-    path = _SITE_PRESETS / f"{name}.yaml"
+    path = _SITE_PRESETS.joinpath(f"{name}.yaml")
     if not path.is_file():
         return None
     node = yaml.safe_load(path.read_text()) or {}
