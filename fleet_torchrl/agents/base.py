@@ -4,7 +4,9 @@ trained. Every agent (baseline or learner) is one entry of :mod:`fleet_torchrl.a
 A policy maps a batch of encoded observations ``[B, F]`` to actions ``[B]`` (int64,
 ``0 = pass``, ``1 = charge``) and names the state encoding it reads (``encoding``), so the
 evaluation loop and the environment build the right features. A learned policy also says how
-to rebuild itself from a policy file (:meth:`Policy.spec` / :meth:`Policy.from_spec`).
+to rebuild itself from a policy file (:meth:`Policy.policy_spec` /
+:meth:`Policy.from_policy_spec`; not ``spec``: TorchRL reads a module's ``spec`` attribute as
+its output spec, and a method of that name breaks ``Collector`` on a wrapped policy).
 
 A learner owns everything that changes while training (tables or networks, optimiser,
 replay buffer, exploration schedule) and is driven by the one training loop of
@@ -64,7 +66,7 @@ class Policy(nn.Module):
     #: ``TC`` values of the panels of its policy map (free / busy by default)
     map_tc_values: ClassVar[tuple[float, ...]] = (0.0, 0.5)
 
-    def spec(self) -> dict[str, Any]:
+    def policy_spec(self) -> dict[str, Any]:
         """Constructor arguments a policy file stores to rebuild this policy (JSON-ready)."""
         return {}
 
@@ -76,7 +78,8 @@ class Policy(nn.Module):
         return None
 
     @classmethod
-    def from_spec(cls, spec: dict[str, Any]) -> Policy:
+    def from_policy_spec(cls, spec: dict[str, Any]) -> Policy:
+        """The policy :meth:`policy_spec` describes (its weights are loaded afterwards)."""
         return cls(**spec)
 
 

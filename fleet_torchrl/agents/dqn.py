@@ -97,6 +97,11 @@ class DQNAgentConfig(AgentConfig):
                               "use one of them or agent.anchor=none")
         return self
 
+    def run_suffix(self, mdp: Any) -> str:
+        """The objective's suffix, then ``_anchored`` for a policy anchored to the heuristic:
+        it acts unlike a plain DQN of the same recipe and must not replace one."""
+        return super().run_suffix(mdp) + ("" if self.anchor == "none" else "_anchored")
+
 
 @dataclass
 class NetworkConfig:
@@ -170,7 +175,7 @@ class DQNPolicy(Policy):
         if anchor != "none":  # the heuristic of MODEL §3, with its parameters fixed here
             self.base = HeuristicPolicy(**(anchor_params or {}))
 
-    def spec(self) -> dict[str, Any]:
+    def policy_spec(self) -> dict[str, Any]:
         out = {"network": asdict(self.network), "n_obs": self.n_obs, "encoding": self.encoding}
         if self.anchor != "none":
             b = self.base
@@ -180,7 +185,7 @@ class DQNPolicy(Policy):
         return out
 
     @classmethod
-    def from_spec(cls, spec: dict[str, Any]) -> DQNPolicy:
+    def from_policy_spec(cls, spec: dict[str, Any]) -> DQNPolicy:
         return cls(NetworkConfig(**spec["network"]), spec["n_obs"], spec["encoding"],
                    spec.get("anchor", "none"), spec.get("anchor_margin", 0.0),
                    spec.get("anchor_params"))

@@ -1,9 +1,12 @@
 """Saved-policy files: one ``policy.pt`` (written atomically) holding a plain dict.
 
 Keys: ``format``, ``kind`` (the agent's registry name), ``encoding``, ``spec`` (the
-constructor arguments of the policy class, :meth:`Policy.spec`), ``state_dict`` and ``meta``
-(provenance). :func:`~fleet_torchrl.agents.registry.load_policy_file` rebuilds the policy
-through the registry.
+constructor arguments of the policy class, :meth:`Policy.policy_spec`), ``state_dict`` and
+``meta`` (provenance). The key stays ``spec`` although the method was renamed (it shadowed
+TorchRL's ``spec`` attribute): files written before and after read alike, and a retrained
+policy's bytes, whose hash the table and the sweeps compare, do not change.
+:func:`~fleet_torchrl.agents.registry.load_policy_file` rebuilds the policy through the
+registry.
 """
 
 from __future__ import annotations
@@ -28,7 +31,7 @@ def policy_bytes(policy: Policy, kind: str, meta: dict[str, Any] | None = None) 
         "format": FORMAT,
         "kind": kind,
         "encoding": policy.encoding,
-        "spec": policy.spec(),
+        "spec": policy.policy_spec(),
         "state_dict": {k: v.detach().cpu() for k, v in policy.state_dict().items()},
         "meta": meta or {},
     }

@@ -8,13 +8,19 @@ config); learners are entries with ``make_learner`` (their policies are loaded f
 
 from __future__ import annotations
 
+import functools
+import hashlib
+import json
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
+from importlib import resources
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import torch
+import yaml
 
+from ..sim import SiteConfig, SiteRanges
 from .base import AgentConfig, Learner, Policy
 from .baselines import HeuristicAgentConfig, HeuristicPolicy, RuleAgentConfig, RulePolicy
 from .dqn import DQNAgentConfig, DQNLearner, DQNPolicy
@@ -32,7 +38,8 @@ class AgentSpec:
     """One agent: its ``agent`` schema, its policy class and how to build it.
 
     ``states``: the encodings it accepts (``None``: any). A learner's policies are named
-    ``<name>`` if it accepts one encoding, else ``<name>_<state>``.
+    ``<name>`` if it accepts one encoding, else ``<name>_<state>``, then what the agent adds
+    (:meth:`AgentConfig.run_suffix`: objective, variant) and the site (:func:`site_suffix`).
     """
 
     name: str
@@ -47,13 +54,57 @@ class AgentSpec:
         return self.make_learner is not None
 
     def run_name(self, cfg: Config) -> str:
-        """Name of the policy a run of this agent makes (``tabular``, ``dqn_partial``,
-        ``dqn_all_throughput``, ``search_mlp``, ...)."""
+        """Name of the policy a run of this agent makes, and so of the folder ``make train``
+        publishes it to: one name per agent, state, objective and site, so that no run
+        replaces the policy of another recipe (``tabular``, ``dqn_all_throughput``,
+        ``search_mlp_five_vehicles``, ``dqn_partial_throughput_anchored_randomized``)."""
         name = self.name if self.states is not None and len(self.states) == 1 \
             else f"{self.name}_{cfg.state.name}"
-        # what else tells two runs apart, as in make table: tabular vs tabular_throughput,
-        # search vs search_mlp
-        return name + cfg.agent.run_suffix(cfg.mdp)
+        # what else tells two runs apart: tabular vs tabular_throughput, search vs
+        # search_mlp, then the site (a DQN of the site distribution is not the default
+        # site's, whose folder it used to overwrite)
+        return name + cfg.agent.run_suffix(cfg.mdp) + site_suffix(cfg.site)
+
+
+# the packaged site presets, wherever in the package this module lives
+_SITE_PRESETS = resources.files(__name__.split(".")[0]).joinpath("conf", "site")
+
+
+@functools.cache
+def site_preset(name: str) -> SiteConfig | None:
+    """The site ``conf/site/<name>.yaml`` defines (its ``defaults`` chain followed), or None
+    if the package has no such preset. Plain YAML, no Hydra: this layer stays below the
+    config (tests/agents/test_registry.py checks it against Hydra's composition)."""
+    path = _SITE_PRESETS.joinpath(f"{name}.yaml")
+    if not path.is_file():
+        return None
+    node = yaml.safe_load(path.read_text()) or {}
+    values: dict = {}
+    for parent in node.pop("defaults", []):
+        if parent in ("base_site", "_self_"):
+            continue
+        base = site_preset(parent)
+        if base is None:
+            return None
+        values.update(asdict(base))
+    values.update(node)
+    ranges = values.pop("ranges", None)
+    return SiteConfig(**values, ranges=SiteRanges(**ranges) if ranges else None)
+
+
+def site_suffix(site: SiteConfig) -> str:
+    """What a policy name adds for the site it was trained on: nothing for the default site,
+    ``_<preset>`` for a packaged preset as it stands (``_five_vehicles``, ``_randomized``),
+    and ``_<name>-<8 hex digits of its settings>`` for any other site (a preset with a
+    field changed, ``site.p_c=0.6``), which would otherwise publish into the folder of the
+    preset's policy."""
+    preset = site_preset(site.name)
+    if preset is not None and preset == site:
+        return "" if site.name == "default" else f"_{site.name}"
+    fields = asdict(site)
+    del fields["name"]
+    digest = hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()[:8]
+    return f"_{site.name}-{digest}"
 
 
 AGENTS: dict[str, AgentSpec] = {}
@@ -119,7 +170,7 @@ def load_policy_file(path: str | Path, device: str | torch.device = "cpu") -> Po
     if spec is None or not spec.trainable:
         raise ValueError(f"{path}: unknown policy kind {kind!r}")
     try:
-        policy = spec.policy_class.from_spec(bundle["spec"])
+        policy = spec.policy_class.from_policy_spec(bundle["spec"])
         policy.load_state_dict(bundle["state_dict"])
     except (RuntimeError, TypeError, KeyError) as e:
         raise ValueError(f"{path}: weights do not fit the {kind} policy ({e})") from None
@@ -146,6 +197,13 @@ def make_policy(cfg: Config, device: str | torch.device | None = None) -> Policy
         path = Path(cfg.train.out_dir)
     else:  # make train's <name>/policy.pt, else the lowest seed make table trained
         path = saved_policy_path(cfg.table.policies_dir, spec.run_name(cfg))
+        other = site_suffix(cfg.site)
+        if other and not path.is_file():  # names carry the site: say how to cross sites
+            home = Path(cfg.table.policies_dir) / spec.run_name(cfg).removesuffix(other)
+            raise FileNotFoundError(
+                f"no saved policy at {path} (a policy trained on this site); to evaluate "
+                f"one trained on another site here, pass agent.policy=<its folder>, "
+                f"e.g. agent.policy={home}")
     policy = load_policy_file(path, device)
     if not isinstance(policy, spec.policy_class):
         raise ValueError(f"{path} holds a {type(policy).__name__}, not a policy of "
@@ -189,4 +247,4 @@ def load_policies(cfg: Config, names: list[str]) -> dict[str, Policy]:
 
 __all__ = ["AGENTS", "POLICY_FILE", "AgentSpec", "default_policy_dir", "get_agent",
            "load_policies", "load_policy_file", "make_policy", "register", "saved_policy_path",
-           "seed_dir"]
+           "seed_dir", "site_preset", "site_suffix"]

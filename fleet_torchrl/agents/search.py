@@ -165,7 +165,7 @@ class SearchPolicy(Policy):
             raise ValueError(f"policy_class={policy_class!r} is invalid: allowed one of "
                              f"{', '.join(POLICY_CLASSES)}")
 
-    def spec(self) -> dict[str, Any]:
+    def policy_spec(self) -> dict[str, Any]:
         return {"policy_class": self.policy_class, "hidden": self.hidden, "depth": self.depth,
                 "n_tc": self.n_tc}
 

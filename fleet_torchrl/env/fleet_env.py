@@ -188,18 +188,33 @@ class FleetChargingEnv(EnvBase):
         return sd
 
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
+        """Restore what :meth:`state_dict` wrote. ``strict=False`` (what TorchRL's
+        ``EnvCreator``, and so ``ParallelEnv``, pass, with every tensor left out of the dict)
+        keeps the current value of each entry that is missing; ``strict=True`` refuses a dict
+        that lacks any, as ``nn.Module`` does, except the sites' drawn parameters, which are
+        kept if absent either way."""
         state_dict = dict(state_dict)
         dev = self.device
-        for name in self._DYNAMIC:
-            setattr(self.state, name, state_dict.pop(f"site.{name}").to(dev).clone())
-        for name in self._PARAMS:  # (a single site's are its constants: kept if absent)
-            if f"site.params.{name}" in state_dict:
-                setattr(self.state.params, name,
-                        state_dict.pop(f"site.params.{name}").to(dev).clone())
-        self._hash = state_dict.pop("site.hash").to(dev).clone()
-        self._trips = state_dict.pop("site.trips").to(dev).clone()
-        self._queue = state_dict.pop("site.queue").to(dev).clone()
-        self._seed = int(state_dict.pop("seed"))
+        required = [f"site.{name}" for name in self._DYNAMIC]
+        required += ["site.hash", "site.trips", "site.queue", "seed"]
+        params = [f"site.params.{name}" for name in self._PARAMS]
+        own = required + params
+        missing = [key for key in required if key not in state_dict]
+        if strict and missing:
+            raise RuntimeError(f"missing key(s) in the state_dict of {type(self).__name__}: "
+                               f"{', '.join(missing)}")
+        value = {key: state_dict.pop(key) for key in own if key in state_dict}
+        for key, v in value.items():
+            if key == "seed":
+                self._seed = int(v)
+                continue
+            v = v.to(dev).clone()
+            if key.startswith("site.params."):
+                setattr(self.state.params, key.removeprefix("site.params."), v)
+            elif key in ("site.hash", "site.trips", "site.queue"):
+                setattr(self, "_" + key.removeprefix("site."), v)
+            else:
+                setattr(self.state, key.removeprefix("site."), v)
         return super().load_state_dict(state_dict, strict=strict, assign=assign)
 
     def current(self) -> TensorDictBase:

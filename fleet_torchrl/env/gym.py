@@ -3,10 +3,14 @@
 observations, rewards and flags (one step = one decision epoch, MODEL §2).
 
 * :class:`FleetGymEnv`: a ``gymnasium.Env`` of one site (``Box(0, 1, (F,))`` observations,
-  ``Discrete(2)`` actions: 0 pass, 1 charge), registered as ``FleetCharging-v0``, so
-  ``gymnasium.make("FleetCharging-v0", site=..., encoding=...)`` and TorchRL's own
-  ``GymEnv("FleetCharging-v0")`` both build it. ``reset(seed=s)`` restarts the stream of
-  training sites of seed ``s`` (common random numbers: the same seed, the same sites).
+  ``Discrete(2)`` actions: 0 pass, 1 charge), registered as ``FleetCharging-v0``.
+  ``gymnasium.make("fleet_torchrl.env.gym:FleetCharging-v0", site=..., encoding=...)`` and
+  TorchRL's ``GymEnv("fleet_torchrl.env.gym:FleetCharging-v0")`` build it with nothing
+  imported first (Gymnasium imports the module named before the colon, which registers the
+  id); after this module is imported the bare ``FleetCharging-v0`` works too. Gymnasium 1.x
+  has no plugin entry points (they went in 1.0), so no installed package can register an id
+  without being imported. ``reset(seed=s)`` restarts the stream of training sites of seed
+  ``s`` (common random numbers: the same seed, the same sites).
 * :class:`FleetVecEnv`: a Stable-Baselines3 ``VecEnv`` over ``num_sites`` sites stepped
   together by the batched simulator; a site whose episode ends restarts at once and reports
   its last observation as ``infos[i]["terminal_observation"]`` and a tick-budget end as
@@ -19,16 +23,23 @@ from __future__ import annotations
 
 from typing import Any
 
-import gymnasium
+try:
+    import gymnasium
+    from gymnasium import spaces
+except ImportError:  # one line that says what to install, not a traceback into gymnasium
+    raise ImportError("fleet_torchrl.env.gym needs Gymnasium, in the gym extra: "
+                      "pip install 'fleet_torchrl[gym]' (in a checkout: pip install -e "
+                      "'.[gym]')") from None
 import numpy as np
 import torch
-from gymnasium import spaces
 
 from ..sim import SiteConfig
 from .config import MDPConfig
 from .fleet_env import FleetChargingEnv
 
 GYM_ID = "FleetCharging-v0"
+#: the id that needs no import first: Gymnasium imports the module, which registers GYM_ID
+GYM_MODULE_ID = f"{__name__}:{GYM_ID}"
 
 
 def _spaces(env: FleetChargingEnv) -> tuple[spaces.Box, spaces.Discrete]:
@@ -76,6 +87,10 @@ try:  # Stable-Baselines3 is optional within the gym extra's users
     from stable_baselines3.common.vec_env import VecEnv
 except ImportError:  # pragma: no cover - exercised only without SB3
     VecEnv = None
+
+    def FleetVecEnv(*args: Any, **kwargs: Any) -> Any:  # stands for the class
+        raise ImportError("FleetVecEnv needs Stable-Baselines3, in the gym extra: "
+                          "pip install 'fleet_torchrl[gym]'")
 
 
 if VecEnv is not None:
@@ -142,7 +157,13 @@ if VecEnv is not None:
             return [indices] if isinstance(indices, int) else list(indices)
 
 
-if GYM_ID not in gymnasium.registry:
-    gymnasium.register(id=GYM_ID, entry_point=FleetGymEnv)
+def register_envs() -> None:
+    """Register ``FleetCharging-v0`` with Gymnasium (idempotent). The entry point is a
+    string, so a registry that lists the id does not build anything until ``make``."""
+    if GYM_ID not in gymnasium.registry:
+        gymnasium.register(id=GYM_ID, entry_point=f"{__name__}:FleetGymEnv")
 
-__all__ = ["GYM_ID", "FleetGymEnv", "FleetVecEnv"]
+
+register_envs()
+
+__all__ = ["GYM_ID", "GYM_MODULE_ID", "FleetGymEnv", "FleetVecEnv", "register_envs"]

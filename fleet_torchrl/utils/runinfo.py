@@ -17,7 +17,10 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-PACKAGES = ("torch", "torchrl", "tensordict", "hydra-core", "omegaconf", "tensorboard", "numpy")
+PROJECT = "fleet_torchrl"
+PACKAGES = (PROJECT, "torch", "torchrl", "tensordict", "hydra-core", "omegaconf", "tensorboard",
+            "numpy", "scipy")
+PACKAGE_DIR = Path(__file__).resolve().parents[1]  # .../fleet_torchrl
 
 
 def atomic_write(path: str | os.PathLike, write: Callable[[Any], None], mode: str = "w") -> Path:
@@ -107,20 +110,49 @@ def to_jsonable(obj: Any) -> Any:
     return obj
 
 
-@functools.lru_cache(maxsize=8)
-def git_commit(cwd: str | os.PathLike | None = None) -> str | None:
-    """The checked-out commit (with ``-dirty`` if the tree has changes), or None."""
-    cwd = cwd or Path(__file__).resolve().parent
+def _git(args: list[str], cwd: Path) -> str | None:
+    r = subprocess.run(["git", *args], cwd=cwd, capture_output=True, text=True, timeout=5)
+    return r.stdout.strip() if r.returncode == 0 else None
+
+
+def is_project_checkout(top: Path, package_dir: Path = PACKAGE_DIR) -> bool:
+    """Whether the git work tree ``top`` is this project's checkout holding the code that
+    runs: its ``pyproject.toml`` names the project and ``package_dir`` is its package folder.
+    An installed package can sit inside some other repository (a virtualenv in a user's own
+    project), whose commit says nothing about this code."""
+    import tomllib
+
     try:
-        sha = subprocess.run(["git", "rev-parse", "HEAD"], cwd=cwd, capture_output=True,
-                             text=True, timeout=5)
-        if sha.returncode != 0:
+        meta = tomllib.loads((top / "pyproject.toml").read_text())
+    except (OSError, tomllib.TOMLDecodeError):
+        return False
+    name = str(meta.get("project", {}).get("name", "")).replace("-", "_").lower()
+    return name == PROJECT and (top / PROJECT).resolve() == package_dir.resolve()
+
+
+@functools.lru_cache(maxsize=8)
+def git_commit(package_dir: str | os.PathLike | None = None) -> str | None:
+    """The commit of the project's own checkout that holds the running package (with
+    ``-dirty`` if its tracked files have changes), or None: the package is installed from a
+    wheel, git is missing, or the repository around it is another project's
+    (:func:`is_project_checkout`)."""
+    pkg = Path(package_dir) if package_dir else PACKAGE_DIR
+    try:
+        top = _git(["rev-parse", "--show-toplevel"], pkg)
+        if top is None or not is_project_checkout(Path(top), pkg):
             return None
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
-                               cwd=cwd, capture_output=True, text=True, timeout=5)
-        return sha.stdout.strip() + ("-dirty" if dirty.stdout.strip() else "")
+        sha = _git(["rev-parse", "HEAD"], pkg)
+        if sha is None:
+            return None
+        dirty = _git(["status", "--porcelain", "--untracked-files=no"], pkg)
+        return sha + ("-dirty" if dirty else "")
     except (OSError, subprocess.SubprocessError):
         return None
+
+
+def project_version() -> str | None:
+    """The installed version of this package (its distribution metadata), or None."""
+    return package_versions().get(PROJECT)
 
 
 @functools.lru_cache(maxsize=1)
@@ -152,10 +184,12 @@ def machine_summary() -> str:
 
 
 def run_info(config: Any = None, seed: int | None = None) -> dict[str, Any]:
-    """Provenance: time, command line, git commit, versions, machine, config and seed."""
+    """Provenance: time, command line, the package's version and its own git commit (None
+    outside a checkout of this project), versions, machine, config and seed."""
     info = {
         "created": datetime.now(UTC).isoformat(timespec="seconds"),
         "argv": sys.argv,
+        "version": project_version(),
         "git_commit": git_commit(),
         "python": platform.python_version(),
         "packages": package_versions(),

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
+import io
+
 import pytest
 import torch
 
@@ -33,3 +36,28 @@ def test_policy_files_round_trip_and_reject_bad_input(tmp_path):
     torch.save({"hello": 1}, tmp_path / "foreign.pt")
     with pytest.raises(ValueError, match="not a fleet_torchrl policy file"):
         load_policy_file(tmp_path / "foreign.pt")
+
+
+def test_policy_files_written_before_the_spec_rename_still_load(tmp_path):
+    """``Policy.spec()`` became ``policy_spec()`` (it shadowed TorchRL's ``spec`` attribute);
+    the file keeps its ``spec`` key, so a file written before the rename, built here by hand
+    as the old code wrote it, loads, and new files keep that layout."""
+    from fleet_torchrl.agents.dqn import DQNPolicy, NetworkConfig
+    from fleet_torchrl.agents.policy_files import FORMAT, policy_bytes
+
+    net = NetworkConfig(width=8, depth=1)
+    pol = DQNPolicy(net, 3, "partial", anchor="heuristic", anchor_margin=2.0)
+    old = {"format": FORMAT, "kind": "dqn", "encoding": "partial",
+           "spec": {"network": dataclasses.asdict(net), "n_obs": 3, "encoding": "partial",
+                    "anchor": "heuristic", "anchor_margin": 2.0,
+                    "anchor_params": {"threshold": pol.base.threshold, "upper": pol.base.upper,
+                                      "others_below": pol.base.others_below}},
+           "state_dict": {k: v.detach() for k, v in pol.state_dict().items()}, "meta": {}}
+    torch.save(old, tmp_path / "old.pt")
+    back = load_policy_file(tmp_path / "old.pt")
+    assert isinstance(back, DQNPolicy) and back.anchor == "heuristic"
+    assert back.anchor_margin == 2.0 and back.network == net
+    obs = torch.rand(200, 3)
+    assert torch.equal(back(obs), pol(obs))
+    new = torch.load(io.BytesIO(policy_bytes(pol, "dqn")), weights_only=True)
+    assert new.keys() == old.keys() and new["spec"] == old["spec"]

@@ -148,3 +148,71 @@ def test_the_makefile_timing_wrapper_exists():
     makefile = (CONF_DIR.parents[1] / "Makefile").read_text()
     module = re.search(r"^TIMED\s*:=\s*\$\(PY\) -m (\S+)", makefile, re.M).group(1)
     assert callable(importlib.import_module(module).main)
+
+
+def test_site_presets_read_without_hydra_are_the_composed_sites():
+    """:func:`site_preset` reads conf/site/*.yaml itself (the registry sits below the config
+    layer); it must give exactly the site Hydra composes, or names would drift."""
+    from fleet_torchrl.agents.registry import site_preset
+
+    names = sorted(p.stem for p in (CONF_DIR / "site").glob("*.yaml"))
+    assert {"default", "five_vehicles", "randomized"} <= set(names)
+    for name in names:
+        assert site_preset(name) == compose_config([f"site={name}"]).site, name
+    assert site_preset("nowhere") is None
+
+
+@pytest.mark.parametrize("overrides, name", [
+    (["agent=tabular"], "tabular"),
+    (["agent=tabular", "mdp.reward=throughput"], "tabular_throughput"),
+    (["agent=dqn", "state=all"], "dqn_all"),
+    (["agent=dqn", "mdp.reward=throughput"], "dqn_partial_throughput"),
+    (["agent=dqn", "mdp.reward=throughput", "agent.anchor=heuristic"],
+     "dqn_partial_throughput_anchored"),
+    (["agent=dqn", "site=randomized", "mdp.reward=throughput"],
+     "dqn_partial_throughput_randomized"),
+    (["agent=dqn", "site=randomized", "mdp.reward=throughput", "agent.anchor=heuristic"],
+     "dqn_partial_throughput_anchored_randomized"),
+    (["agent=dqn", "site=randomized", "state=partial_site"], "dqn_partial_site_randomized"),
+    (["agent=search", "site=five_vehicles"], "search_five_vehicles"),
+    (["agent=search", "agent.policy_class=mlp", "site=slow_charger"],
+     "search_mlp_slow_charger"),
+    (["agent=search", "mdp.reward=throughput"], "search"),  # it maximises trips anyway
+    # budgets and network settings are the same recipe trained longer or wider
+    (["agent=dqn", "state=all", "network.width=128", "train.max_episodes=99"], "dqn_all"),
+])
+def test_run_names_say_agent_state_objective_and_site(overrides, name):
+    cfg = compose_config(overrides)
+    assert AGENTS[cfg.agent.name].run_name(cfg) == name
+
+
+def test_a_changed_site_field_gets_its_own_name():
+    """``site.p_c=0.6`` is not the default site: its policy must not land in ``search/``."""
+    def name(*o):
+        cfg = compose_config(["agent=search", *o])
+        return AGENTS["search"].run_name(cfg)
+
+    a, b = name("site.p_c=0.6"), name("site.p_c=0.7")
+    assert a.startswith("search_default-") and b.startswith("search_default-") and a != b
+    assert name("site.p_c=0.6") == a  # a pure function of the settings
+    assert name("site.p_c=0.8") == "search"  # the default's own value: the default site
+    five = name("site=five_vehicles", "site.p_c=0.6")
+    assert five.startswith("search_five_vehicles-") and five != "search_five_vehicles"
+    assert name("site=randomized", "site.ranges.t_c=[20,40]").startswith("search_randomized-")
+    # a preset with the default's values under another name is still named for its preset
+    assert name("site=five_vehicles", "site.n_vehicles=3") != "search"
+
+
+def test_evaluating_on_another_site_says_how(tmp_path):
+    from fleet_torchrl.agents import save_policy
+    from fleet_torchrl.agents.tabular import TabularQPolicy
+
+    save_policy(tmp_path / "tabular" / "policy.pt", TabularQPolicy(), "tabular")
+    cfg = compose_config(["agent=tabular", "site=five_vehicles",
+                          f"table.policies_dir={tmp_path}"])
+    with pytest.raises(FileNotFoundError, match=r"tabular_five_vehicles.*agent\.policy=.*"
+                                                r"tabular$"):
+        make_policy(cfg)
+    cfg = compose_config(["agent=tabular", "site=five_vehicles",
+                          f"agent.policy={tmp_path / 'tabular'}"])
+    assert isinstance(make_policy(cfg), TabularQPolicy)

@@ -76,3 +76,36 @@ def test_vectorised_env_trains_sb3_dqn():
     model.learn(total_timesteps=3000)
     act, _ = model.predict(obs, deterministic=True)
     assert act.shape == (16,)
+
+
+def test_gymnasium_and_torchrl_build_the_env_with_nothing_imported_first():
+    """A fresh interpreter: ``gymnasium.make`` and TorchRL's ``GymEnv`` given the module id
+    import and register the env themselves (Gymnasium 1.x loads no plugin entry points)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, gymnasium\n"
+        "from torchrl.envs import GymEnv\n"
+        "assert not any(m.startswith('fleet_torchrl') for m in sys.modules)\n"
+        "env = gymnasium.make('fleet_torchrl.env.gym:FleetCharging-v0', encoding='all')\n"
+        "obs, _ = env.reset(seed=0)\n"
+        "assert obs.shape == (16,), obs.shape\n"
+        "td = GymEnv('fleet_torchrl.env.gym:FleetCharging-v0').rollout(5)\n"
+        "assert td['next', 'reward'].shape == (5, 1)\n"
+        "assert gymnasium.make('FleetCharging-v0').observation_space.shape == (3,)\n"
+        "print('ok')\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0 and r.stdout.strip() == "ok", r.stderr[-2000:]
+
+
+def test_registration_is_lazy_and_idempotent():
+    from fleet_torchrl.env.gym import GYM_ID, GYM_MODULE_ID, register_envs
+
+    spec = gymnasium.spec(GYM_ID)
+    assert spec.entry_point == "fleet_torchrl.env.gym:FleetGymEnv"  # built only by make
+    assert GYM_MODULE_ID == "fleet_torchrl.env.gym:FleetCharging-v0"
+    register_envs()
+    assert gymnasium.spec(GYM_ID) is spec

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import json
 
 import pytest
 import torch
@@ -144,3 +145,49 @@ def test_strata_of_a_site_distribution_and_the_worst_stratum_gain():
     assert worst_stratum_gain(better, base, strata) == pytest.approx((1.0, "n_vehicles=2"))
     g, where = worst_stratum_gain(worse_on_4, base, strata)
     assert where == "n_vehicles=4" and g == pytest.approx(-1.0)
+
+
+# two-sided 95 % quantiles of Student's t from published tables (not from scipy)
+T_TABLE = {1: 12.7062047, 7: 2.3646243, 10: 2.2281389, 11: 2.2009852, 29: 2.0452296,
+           999: 1.9623414}
+
+
+def test_t_quantiles_are_students_for_any_degrees_of_freedom():
+    from fleet_torchrl.evaluation.results import t95
+
+    for dof, t in T_TABLE.items():
+        assert t95(dof) == pytest.approx(t, abs=1e-6), dof
+    with pytest.raises(ValueError, match="degree of freedom"):
+        t95(0)
+
+
+@pytest.mark.parametrize("n", [2, 11, 12, 30])
+def test_seed_interval_is_a_student_t_interval(n):
+    """12 seeds used the normal's 1.96 (the old table stopped at 10 dof): 11 % too narrow."""
+    from fleet_torchrl.evaluation import seed_interval
+
+    values = [1.0 + 0.37 * ((7 * k) % 5) - 0.1 * k for k in range(n)]
+    x = torch.tensor(values, dtype=torch.float64)
+    half = T_TABLE[n - 1] * float(x.std()) / n ** 0.5
+    out = seed_interval(values)
+    assert out["ci95"] == pytest.approx(half, rel=1e-6)
+    assert out["mean"] == pytest.approx(float(x.mean())) and out["n"] == n
+
+
+def test_paired_gain_interval_is_a_paired_t_interval(tmp_path, capsys):
+    """At 8 simulations ``compare`` printed ±3.60 with 1.96 where the paired t gives ±4.34."""
+    from fleet_torchrl.compare import main
+
+    base = {"policy": "rule", "seed": 0, "n_sims": 8, "ticks": 10, "site": {},
+            "records": {"trips": [100, 102, 98, 101, 99, 103, 97, 100]}}
+    res = {**base, "policy": "better",
+           "records": {"trips": [104, 101, 99, 108, 97, 107, 99, 106]}}
+    diff = torch.tensor(res["records"]["trips"], dtype=torch.float64) - torch.tensor(
+        base["records"]["trips"], dtype=torch.float64)
+    # baseline mean 100 trips: the half-width in % of it is the half-width in trips
+    want = T_TABLE[7] * float(diff.std()) / 8 ** 0.5
+    assert gain_over(res, base)["gain_ci95"] == pytest.approx(want, rel=1e-6)
+    for name, r in (("a", res), ("b", base)):
+        (tmp_path / f"{name}.json").write_text(json.dumps(r))
+    assert main([str(tmp_path / "a.json"), str(tmp_path / "b.json")]) == 0
+    assert f"(95% CI ± {want:.2f})" in capsys.readouterr().out

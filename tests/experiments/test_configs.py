@@ -47,6 +47,27 @@ LAUNCHERS = [
     ("submitit_local", "LocalLauncher", "hydra_plugins.hydra_submitit_launcher"),
     ("ray_cluster", "RayLauncher", "hydra_plugins.hydra_ray_launcher"),
 ]
+# what installs each launcher plugin (pyproject.toml: a dependency, or an extra)
+PLUGIN_INSTALL = {
+    "hydra_plugins.hydra_joblib_launcher": "a dependency: pip install -e .",
+    "hydra_plugins.hydra_submitit_launcher": "the cluster extra: pip install -e '.[cluster]'",
+    "hydra_plugins.hydra_ray_launcher": "the ray extra: pip install -e '.[ray]'",
+}
+
+
+def test_skip_messages_name_the_extra_pyproject_declares():
+    """A skipped launcher test says what to install; the Ray plugin is in the ray extra, the
+    submitit one in the cluster extra (a hint naming the wrong extra sends users astray)."""
+    import tomllib
+
+    project = tomllib.loads((CONF_DIR.parents[1] / "pyproject.toml").read_text())["project"]
+    for plugin, hint in PLUGIN_INSTALL.items():
+        dist = plugin.split(".")[1].replace("_", "-")
+        if "extra" in hint:
+            extra = hint.split("the ")[1].split(" extra")[0]
+            assert any(r.startswith(dist) for r in project["optional-dependencies"][extra])
+        else:
+            assert any(r.startswith(dist) for r in project["dependencies"])
 
 
 @pytest.mark.parametrize("launcher, target, plugin", LAUNCHERS)
@@ -55,7 +76,7 @@ def test_every_experiment_composes_with_every_launcher(name, launcher, target, p
     """A launcher given on the command line replaces the experiment's local one whole: no
     joblib setting (n_jobs) leaks into a Slurm or Ray launcher config."""
     if not _plugin(plugin.split(".")[0]) or not _plugin(plugin):
-        pytest.skip(f"{plugin} is not installed (pip install -e '.[cluster]')")
+        pytest.skip(f"{plugin} is not installed ({PLUGIN_INSTALL[plugin]})")
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         dcfg = compose(config_name="config", return_hydra_config=True,
                        overrides=[f"+experiment={name}", f"hydra/launcher={launcher}"])
