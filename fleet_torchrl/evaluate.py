@@ -16,10 +16,10 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from .agents import make_policy
 from .config import Config, check_command_line, register_configs, to_config
 from .evaluation import evaluate_with, format_table, save_result
 from .evaluation.results import check_result_path
+from .store import make_policy
 from .utils.cli import user_errors
 from .utils.runinfo import run_info
 

@@ -11,8 +11,8 @@ import fleet_torchrl
 
 PKG = Path(fleet_torchrl.__file__).resolve().parent
 # lower rank = lower layer; a module imports only from its own layer or lower ones
-RANK = {"utils": 0, "sim": 1, "env": 2, "agents": 3, "evaluation": 4, "training": 5,
-        "config": 6, "experiments": 7}
+RANK = {"utils": 0, "sim": 1, "env": 2, "agents": 3, "evaluation": 4, "store": 4,
+        "training": 5, "config": 6, "experiments": 7}
 COMMAND_RANK = 8  # the thin command modules at the top of the package
 
 
@@ -21,15 +21,15 @@ def module_name(path: Path) -> str:
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
-def runtime_imports(path: Path) -> set[str]:
-    """``fleet_torchrl`` modules imported at module level (TYPE_CHECKING blocks left out)."""
+def imports(path: Path) -> set[str]:
+    """``fleet_torchrl`` modules a module imports anywhere: at module level, inside functions
+    and in ``TYPE_CHECKING`` blocks (a type-checking import is still a dependency: a type
+    checker follows it, and it can close an import circle)."""
     tree = ast.parse(path.read_text())
     mod = module_name(path)
     package = mod if path.name == "__init__.py" else mod.rsplit(".", 1)[0]
     out: set[str] = set()
     for node in tree.body:
-        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
-            continue
         for sub in ast.walk(node):
             if isinstance(sub, ast.ImportFrom):
                 if sub.level:
@@ -58,7 +58,7 @@ def rank(mod: str) -> int:
 
 
 def modules() -> dict[str, set[str]]:
-    return {module_name(p): runtime_imports(p) for p in PKG.rglob("*.py")}
+    return {module_name(p): imports(p) for p in PKG.rglob("*.py")}
 
 
 def test_layers_import_only_downwards():
@@ -96,3 +96,15 @@ def test_simulator_and_environment_import_no_config_framework():
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip() == "[]"
+
+
+def test_type_checking_imports_are_dependencies_too():
+    """The scan sees a ``TYPE_CHECKING`` import (the agents once reached up to the root
+    config that way, closing a circle through the registry)."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory(dir=PKG) as d:
+        probe = Path(d) / "probe.py"
+        probe.write_text("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n"
+                         "    from fleet_torchrl.config import Config\n")
+        assert "fleet_torchrl.config" in imports(probe)

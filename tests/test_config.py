@@ -137,11 +137,11 @@ def test_the_table_schema_default_is_the_yaml_default():
 
 
 def test_run_names_tell_runs_apart():
-    from fleet_torchrl.agents import get_agent
+    from fleet_torchrl.store import policy_name
 
     def name(*over):
         cfg = compose_config(list(over))
-        return get_agent(cfg.agent.name).run_name(cfg)
+        return policy_name(cfg)
 
     assert name("agent=tabular") == "tabular"
     assert name("agent=tabular", "mdp.reward=throughput") == "tabular_throughput"

@@ -51,8 +51,8 @@ def _recipe(cfg) -> tuple:
 
 
 def _published(overrides: list[str]) -> tuple[str, tuple]:
-    from fleet_torchrl.agents import default_policy_dir
     from fleet_torchrl.config import compose_config
+    from fleet_torchrl.store import default_policy_dir
 
     cfg = compose_config(overrides)
     return default_policy_dir(cfg).as_posix(), _recipe(cfg)
@@ -102,9 +102,9 @@ def test_readme_grid_runs_publish_into_their_job_folders():
 def test_table_runs_keep_their_folders_and_share_one_only_with_their_recipe():
     """``make table`` publishes run ``<key>`` to ``results/policies/<key>/seed<s>/`` (kept
     as it was); a README ``make train`` whose name is such a key trains that key's recipe."""
-    from fleet_torchrl.agents.registry import seed_dir
     from fleet_torchrl.config import compose_config
     from fleet_torchrl.experiments.table import run_overrides
+    from fleet_torchrl.store import seed_dir
 
     cfg = compose_config([])
     table = {}

@@ -19,16 +19,13 @@ from __future__ import annotations
 import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import Any, ClassVar
 
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
 from torch import Tensor, nn
 
 from ..sim.fused import KernelPolicy
-
-if TYPE_CHECKING:
-    from ..config import Config
 
 PASS, CHARGE = 0, 1
 
@@ -39,8 +36,9 @@ class AgentConfig:
 
     name: str = ""
 
-    def validate(self, cfg: Config, path: str = "agent") -> AgentConfig:
-        """Range checks of this agent's fields (``cfg``: the whole config, for cross-checks)."""
+    def validate(self, cfg: Any = None, path: str = "agent") -> AgentConfig:
+        """Range checks of this agent's fields (``cfg``: the whole config, duck-typed, for
+        cross-checks such as the state the agent reads)."""
         return self
 
     def objective(self, mdp: Any) -> str:

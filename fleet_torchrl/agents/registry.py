@@ -3,24 +3,23 @@
 Adding a learner is one module (schema, policy, :class:`~fleet_torchrl.agents.base.Learner`),
 one ``fleet_torchrl/conf/agent/<name>.yaml`` and one :func:`register` call below; nothing
 else switches on agent names. Baselines are entries with ``make_policy`` (built from their
-config); learners are entries with ``make_learner`` (their policies are loaded from files).
+config); learners are entries with ``make_learner`` (built from a :class:`LearnerContext`,
+the explicit group configs a learner needs; their policies are loaded from files). Where
+policies are published and found (names, folders) is :mod:`fleet_torchrl.store`'s business,
+above this layer: nothing here reads the root config.
 """
 
 from __future__ import annotations
 
-import functools
-import hashlib
-import json
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
-from importlib import resources
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Any
 
 import torch
-import yaml
 
-from ..sim import SiteConfig, SiteRanges
+from ..env.config import MDPConfig
+from ..sim import SiteConfig
 from .base import AgentConfig, Learner, Policy
 from .baselines import HeuristicAgentConfig, HeuristicPolicy, RuleAgentConfig, RulePolicy
 from .dqn import DQNAgentConfig, DQNLearner, DQNPolicy
@@ -28,83 +27,42 @@ from .policy_files import POLICY_FILE, read_policy_file
 from .search import SearchAgentConfig, SearchLearner, SearchPolicy
 from .tabular import TabularAgentConfig, TabularLearner, TabularQPolicy
 
-if TYPE_CHECKING:
-    from ..config import Config
-    from ..env import FleetChargingEnv
+
+@dataclass(frozen=True)
+class LearnerContext:
+    """What a learner is built from: the group configs it reads, the training seed and
+    budget, and the environment's device, observation size and action spec."""
+
+    agent: AgentConfig
+    network: Any  # NetworkConfig (the DQN's network group)
+    mdp: MDPConfig
+    site: SiteConfig
+    state: str
+    seed: int
+    rounds: int  # rounds of the training loop
+    device: torch.device
+    n_obs: int
+    action_spec: Any  # the environment's action spec
 
 
 @dataclass(frozen=True)
 class AgentSpec:
     """One agent: its ``agent`` schema, its policy class and how to build it.
 
-    ``states``: the encodings it accepts (``None``: any). A learner's policies are named
-    ``<name>`` if it accepts one encoding, else ``<name>_<state>``, then what the agent adds
-    (:meth:`AgentConfig.run_suffix`: objective, variant) and the site (:func:`site_suffix`).
+    ``states``: the encodings it accepts (``None``: any); a learner's policy names say the
+    state only when it accepts several (:func:`fleet_torchrl.store.policy_name`).
     """
 
     name: str
     schema: type[AgentConfig]
     policy_class: type[Policy]
     make_policy: Callable[[AgentConfig], Policy] | None = None
-    make_learner: Callable[[Config, FleetChargingEnv], Learner] | None = None
+    make_learner: Callable[[LearnerContext], Learner] | None = None
     states: tuple[str, ...] | None = None
 
     @property
     def trainable(self) -> bool:
         return self.make_learner is not None
-
-    def run_name(self, cfg: Config) -> str:
-        """Name of the policy a run of this agent makes, and so of the folder ``make train``
-        publishes it to: one name per agent, state, objective and site, so that no run
-        replaces the policy of another recipe (``tabular``, ``dqn_all_throughput``,
-        ``search_mlp_five_vehicles``, ``dqn_partial_throughput_anchored_randomized``)."""
-        name = self.name if self.states is not None and len(self.states) == 1 \
-            else f"{self.name}_{cfg.state.name}"
-        # what else tells two runs apart: tabular vs tabular_throughput, search vs
-        # search_mlp, then the site (a DQN of the site distribution is not the default
-        # site's, whose folder it used to overwrite)
-        return name + cfg.agent.run_suffix(cfg.mdp) + site_suffix(cfg.site)
-
-
-# the packaged site presets, wherever in the package this module lives
-_SITE_PRESETS = resources.files(__name__.split(".")[0]).joinpath("conf", "site")
-
-
-@functools.cache
-def site_preset(name: str) -> SiteConfig | None:
-    """The site ``conf/site/<name>.yaml`` defines (its ``defaults`` chain followed), or None
-    if the package has no such preset. Plain YAML, no Hydra: this layer stays below the
-    config (tests/agents/test_registry.py checks it against Hydra's composition)."""
-    path = _SITE_PRESETS.joinpath(f"{name}.yaml")
-    if not path.is_file():
-        return None
-    node = yaml.safe_load(path.read_text()) or {}
-    values: dict = {}
-    for parent in node.pop("defaults", []):
-        if parent in ("base_site", "_self_"):
-            continue
-        base = site_preset(parent)
-        if base is None:
-            return None
-        values.update(asdict(base))
-    values.update(node)
-    ranges = values.pop("ranges", None)
-    return SiteConfig(**values, ranges=SiteRanges(**ranges) if ranges else None)
-
-
-def site_suffix(site: SiteConfig) -> str:
-    """What a policy name adds for the site it was trained on: nothing for the default site,
-    ``_<preset>`` for a packaged preset as it stands (``_five_vehicles``, ``_randomized``),
-    and ``_<name>-<8 hex digits of its settings>`` for any other site (a preset with a
-    field changed, ``site.p_c=0.6``), which would otherwise publish into the folder of the
-    preset's policy."""
-    preset = site_preset(site.name)
-    if preset is not None and preset == site:
-        return "" if site.name == "default" else f"_{site.name}"
-    fields = asdict(site)
-    del fields["name"]
-    digest = hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()[:8]
-    return f"_{site.name}-{digest}"
 
 
 AGENTS: dict[str, AgentSpec] = {}
@@ -124,20 +82,18 @@ def get_agent(name: str) -> AgentSpec:
 
 
 # ------------------------------------------------------------------------ the entries
-def _tabular_learner(cfg: Config, env: FleetChargingEnv) -> Learner:
-    return TabularLearner(k=cfg.agent.k, gamma=cfg.mdp.discount, agent=cfg.agent,
-                          mdp=cfg.mdp).to(env.device)
+def _tabular_learner(c: LearnerContext) -> Learner:
+    return TabularLearner(k=c.agent.k, gamma=c.mdp.discount, agent=c.agent,
+                          mdp=c.mdp).to(c.device)
 
 
-def _dqn_learner(cfg: Config, env: FleetChargingEnv) -> Learner:
-    n_obs = env.observation_spec["observation"].shape[-1]
-    rounds = cfg.agent.training_rounds(cfg.train)
-    return DQNLearner(cfg.agent, cfg.network, n_obs, cfg.state.name, env.action_spec,
-                      cfg.mdp, env.device, total_updates=rounds * cfg.agent.updates_per_round)
+def _dqn_learner(c: LearnerContext) -> Learner:
+    return DQNLearner(c.agent, c.network, c.n_obs, c.state, c.action_spec, c.mdp, c.device,
+                      total_updates=c.rounds * c.agent.updates_per_round)
 
 
-def _search_learner(cfg: Config, env: FleetChargingEnv) -> Learner:
-    init = cfg.agent.init
+def _search_learner(c: LearnerContext) -> Learner:
+    init = c.agent.init
     if init == "uniform":
         start = None
     elif init in AGENTS and not AGENTS[init].trainable:
@@ -147,7 +103,7 @@ def _search_learner(cfg: Config, env: FleetChargingEnv) -> Learner:
         if start.encoding != "partial":
             raise ValueError(f"agent.init={init!r}: a {start.encoding!r}-state policy cannot "
                              "start a search over partial-state policies")
-    return SearchLearner(cfg.agent, cfg.site, cfg.seed, start).to(env.device)
+    return SearchLearner(c.agent, c.site, c.seed, start).to(c.device)
 
 
 register(AgentSpec("rule", RuleAgentConfig, RulePolicy, make_policy=RulePolicy.from_config))
@@ -177,74 +133,5 @@ def load_policy_file(path: str | Path, device: str | torch.device = "cpu") -> Po
     return policy.to(device).eval()
 
 
-def default_policy_dir(cfg: Config) -> Path:
-    """Where a training run of ``cfg`` saves its policy, and where evaluation looks for it."""
-    if cfg.train.out_dir:
-        return Path(cfg.train.out_dir)
-    return Path(cfg.table.policies_dir) / get_agent(cfg.agent.name).run_name(cfg)
-
-
-def make_policy(cfg: Config, device: str | torch.device | None = None) -> Policy:
-    """The policy ``cfg.agent`` names: baselines from their config, learned ones from disk
-    (``agent.policy`` or the default location of their run)."""
-    spec = get_agent(cfg.agent.name)
-    device = device if device is not None else cfg.eval.device
-    if not spec.trainable:
-        return spec.make_policy(cfg.agent).to(device)
-    if cfg.agent.policy:
-        path = Path(cfg.agent.policy)
-    elif cfg.train.out_dir:
-        path = Path(cfg.train.out_dir)
-    else:  # make train's <name>/policy.pt, else the lowest seed make table trained
-        path = saved_policy_path(cfg.table.policies_dir, spec.run_name(cfg))
-        other = site_suffix(cfg.site)
-        if other and not path.is_file():  # names carry the site: say how to cross sites
-            home = Path(cfg.table.policies_dir) / spec.run_name(cfg).removesuffix(other)
-            raise FileNotFoundError(
-                f"no saved policy at {path} (a policy trained on this site); to evaluate "
-                f"one trained on another site here, pass agent.policy=<its folder>, "
-                f"e.g. agent.policy={home}")
-    policy = load_policy_file(path, device)
-    if not isinstance(policy, spec.policy_class):
-        raise ValueError(f"{path} holds a {type(policy).__name__}, not a policy of "
-                         f"agent={spec.name}: pass the matching agent= with agent.policy=")
-    if policy.encoding != cfg.state.name:
-        raise ValueError(f"{path} was trained on state={policy.encoding}, not "
-                         f"state={cfg.state.name}")
-    return policy
-
-
-def seed_dir(root: str | Path, name: str, seed: int) -> Path:
-    """Folder of the policy ``name`` trained with ``seed`` (``make table`` trains several)."""
-    return Path(root) / name / f"seed{seed}"
-
-
-def saved_policy_path(root: str | Path, name: str) -> Path:
-    """The saved policy a name stands for: ``<root>/<name>/policy.pt`` if there is one, else
-    the policy of the lowest training seed, ``<root>/<name>/seed<k>/policy.pt``."""
-    folder = Path(root) / name
-    if (folder / POLICY_FILE).is_file():
-        return folder / POLICY_FILE
-    seeds = sorted((int(p.parent.name[4:]), p) for p in folder.glob(f"seed*/{POLICY_FILE}")
-                   if p.parent.name[4:].isdigit())
-    return seeds[0][1] if seeds else folder / POLICY_FILE
-
-
-def load_policies(cfg: Config, names: list[str]) -> dict[str, Policy]:
-    """Policies by name: baselines (``rule``, ``heuristic``) with their default parameters,
-    learned ones from ``cfg.table.policies_dir`` (:func:`saved_policy_path`)."""
-    out: dict[str, Policy] = {}
-    for name in names:
-        spec = AGENTS.get(name)
-        if spec is not None and not spec.trainable:
-            out[name] = spec.make_policy(spec.schema()).to(cfg.eval.device)
-        else:
-            out[name] = load_policy_file(saved_policy_path(cfg.table.policies_dir, name),
-                                         cfg.eval.device)
-            out[name].name = name
-    return out
-
-
-__all__ = ["AGENTS", "POLICY_FILE", "AgentSpec", "default_policy_dir", "get_agent",
-           "load_policies", "load_policy_file", "make_policy", "register", "saved_policy_path",
-           "seed_dir", "site_preset", "site_suffix"]
+__all__ = ["AGENTS", "POLICY_FILE", "AgentSpec", "LearnerContext", "get_agent",
+           "load_policy_file", "register"]

@@ -27,10 +27,10 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from ..agents import HeuristicPolicy, Policy, RulePolicy, load_policies
-from ..agents.registry import saved_policy_path
+from ..agents import HeuristicPolicy, Policy, RulePolicy
 from ..env import FleetChargingEnv, MDPConfig
 from ..sim import SiteConfig
+from ..store import load_policies, saved_policy_path
 
 if TYPE_CHECKING:
     from ..config import Config

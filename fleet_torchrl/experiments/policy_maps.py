@@ -11,7 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from ..agents import load_policies
+from ..store import load_policies
 from ..utils.plotting import plot_policy_map, save_figure
 
 if TYPE_CHECKING:

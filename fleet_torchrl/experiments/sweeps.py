@@ -37,14 +37,14 @@ from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
-from ..agents import AGENTS, load_policies, load_policy_file
+from ..agents import AGENTS, load_policy_file
 from ..agents.base import Policy
 from ..agents.policy_files import POLICY_FILE
-from ..agents.registry import saved_policy_path
 from ..agents.search import SearchPolicy, cell_centres, clone_policy
 from ..config import Config, compose_config
 from ..evaluation import evaluate_policy, evaluate_with, gain_over
 from ..sim import SiteConfig
+from ..store import load_policies, saved_policy_path
 from ..training import Trainer, training_fingerprint
 from ..utils.checks import ConfigError
 from ..utils.runinfo import file_sha256, read_json, run_info, to_jsonable, write_json

@@ -29,10 +29,11 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
-from ..agents import POLICY_FILE, load_policies
-from ..agents.registry import load_policy_file, seed_dir
+from ..agents import POLICY_FILE
+from ..agents.registry import load_policy_file
 from ..config import Config, compose_config
 from ..evaluation import evaluate_with, gain_over, save_result, seed_interval
+from ..store import load_policies, seed_dir
 from ..training import CHECKPOINT, checkpoint_mismatch, training_fingerprint
 from ..utils.plotting import plot_gain_boxplot, plot_learning_curves, save_figure
 from ..utils.runinfo import file_sha256, read_json, run_info, write_csv, write_json, write_text

@@ -12,12 +12,11 @@ import zipfile
 import zlib
 from dataclasses import asdict
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from ..utils.runinfo import to_jsonable
 
-if TYPE_CHECKING:
-    from ..config import Config
+Config = Any  # the root ``Config``, duck-typed: this layer sits below it
 
 CHECKPOINT = "checkpoint.ckpt"
 

@@ -41,7 +41,7 @@ import logging
 import time
 from dataclasses import asdict
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -49,9 +49,10 @@ from tensordict import TensorDict, TensorDictBase
 from ..agents.base import Policy
 from ..agents.baselines import HeuristicPolicy, RulePolicy
 from ..agents.policy_files import POLICY_FILE, save_policy
-from ..agents.registry import default_policy_dir, get_agent
+from ..agents.registry import LearnerContext, get_agent
 from ..env import FleetChargingEnv
 from ..evaluation import evaluate_policy, gain_over, site_strata, worst_stratum_gain
+from ..store import default_policy_dir, policy_name
 from ..utils.monitor import Monitor
 from ..utils.numerics import flush_denormals
 from ..utils.plotting import plot_policy_map
@@ -59,8 +60,7 @@ from ..utils.runinfo import run_info, write_json
 from .checkpoint import CHECKPOINT, UNREADABLE, checkpoint_mismatch, training_fingerprint
 from .progress import EvalEntry, Progress, selection_score
 
-if TYPE_CHECKING:
-    from ..config import Config
+Config = Any  # the root ``Config``, duck-typed: this layer sits below it
 
 log = logging.getLogger(__name__)
 
@@ -138,7 +138,7 @@ class Trainer:
         self.cfg = cfg
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
-        self.name = self.spec.run_name(cfg)
+        self.name = policy_name(cfg)
         self.out_dir = default_policy_dir(cfg)
         self.device = torch.device(cfg.train.device)
         self.n_rounds = cfg.agent.training_rounds(cfg.train)
@@ -161,7 +161,11 @@ class Trainer:
                                     device=self.device)
 
     def setup_learner(self) -> None:
-        self.learner = self.spec.make_learner(self.cfg, self.env)
+        c, env = self.cfg, self.env
+        self.learner = self.spec.make_learner(LearnerContext(
+            agent=c.agent, network=c.network, mdp=c.mdp, site=c.site, state=c.state.name,
+            seed=c.seed, rounds=self.n_rounds, device=env.device,
+            n_obs=env.observation_spec["observation"].shape[-1], action_spec=env.action_spec))
         self.best_policy = copy.deepcopy(self.policy()).cpu()
 
     def setup_evaluation(self) -> None:

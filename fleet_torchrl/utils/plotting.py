@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Any
 
 import matplotlib
 
@@ -14,8 +14,7 @@ from matplotlib.colors import ListedColormap  # noqa: E402
 
 from .runinfo import atomic_write  # noqa: E402
 
-if TYPE_CHECKING:
-    from ..agents.base import Policy
+Policy = Any  # an agents.base.Policy (duck-typed: utils sits below the agents)
 
 TC_TABULAR = (0.0, 0.5)  # free / busy: the tabular state only sees TC > 0
 _CMAP = ListedColormap(["#d9e6f2", "#d95f02"])  # pass, charge

@@ -17,8 +17,8 @@ from fleet_torchrl.agents import (
     load_policy_file,
     register,
 )
-from fleet_torchrl.agents.registry import make_policy
 from fleet_torchrl.config import CONF_DIR, compose_config
+from fleet_torchrl.store import make_policy, policy_name
 
 
 def test_every_agent_has_a_config_file_and_a_schema():
@@ -33,8 +33,8 @@ def test_every_agent_has_a_config_file_and_a_schema():
 
 
 def test_run_names_follow_the_accepted_states():
-    assert AGENTS["tabular"].run_name(compose_config(["agent=tabular"])) == "tabular"
-    assert AGENTS["dqn"].run_name(compose_config(["agent=dqn", "state=all"])) == "dqn_all"
+    assert policy_name(compose_config(["agent=tabular"])) == "tabular"
+    assert policy_name(compose_config(["agent=dqn", "state=all"])) == "dqn_all"
 
 
 # a learner written outside the package: one schema, one policy, one learner, one entry
@@ -89,7 +89,7 @@ class ThresholdLearner(Learner):
 @pytest.fixture
 def threshold_agent():
     spec = register(AgentSpec("threshold", ThresholdAgentConfig, ThresholdPolicy,
-                              make_learner=lambda cfg, env: ThresholdLearner()))
+                              make_learner=lambda ctx: ThresholdLearner()))
     ConfigStore.instance().store(group="agent", name="threshold", node=ThresholdAgentConfig)
     yield spec
     del AGENTS["threshold"]
@@ -132,7 +132,7 @@ def test_names_carry_the_objective_and_make_table_policies_are_found(tmp_path):
     from fleet_torchrl.agents.tabular import TabularQPolicy
 
     thr = compose_config(["agent=dqn", "mdp.reward=throughput"])
-    assert AGENTS["dqn"].run_name(thr) == "dqn_partial_throughput"
+    assert policy_name(thr) == "dqn_partial_throughput"
     # make table saves per seed: evaluating agent=tabular finds the lowest seed's policy
     save_policy(tmp_path / "tabular" / "seed1" / "policy.pt", TabularQPolicy(), "tabular")
     cfg = compose_config(["agent=tabular", f"table.policies_dir={tmp_path}"])
@@ -153,7 +153,7 @@ def test_the_makefile_timing_wrapper_exists():
 def test_site_presets_read_without_hydra_are_the_composed_sites():
     """:func:`site_preset` reads conf/site/*.yaml itself (the registry sits below the config
     layer); it must give exactly the site Hydra composes, or names would drift."""
-    from fleet_torchrl.agents.registry import site_preset
+    from fleet_torchrl.store import site_preset
 
     names = sorted(p.stem for p in (CONF_DIR / "site").glob("*.yaml"))
     assert {"default", "five_vehicles", "randomized"} <= set(names)
@@ -183,14 +183,14 @@ def test_site_presets_read_without_hydra_are_the_composed_sites():
 ])
 def test_run_names_say_agent_state_objective_and_site(overrides, name):
     cfg = compose_config(overrides)
-    assert AGENTS[cfg.agent.name].run_name(cfg) == name
+    assert policy_name(cfg) == name
 
 
 def test_a_changed_site_field_gets_its_own_name():
     """``site.p_c=0.6`` is not the default site: its policy must not land in ``search/``."""
     def name(*o):
         cfg = compose_config(["agent=search", *o])
-        return AGENTS["search"].run_name(cfg)
+        return policy_name(cfg)
 
     a, b = name("site.p_c=0.6"), name("site.p_c=0.7")
     assert a.startswith("search_default-") and b.startswith("search_default-") and a != b

@@ -26,9 +26,9 @@ def test_search_starts_from_the_points_best_partial_policy(saved_policies):
     default site; a saved policy is named by its file."""
     from dataclasses import replace
 
-    from fleet_torchrl.agents import load_policies
     from fleet_torchrl.config import compose_config
     from fleet_torchrl.experiments.sweeps import search_config, search_start
+    from fleet_torchrl.store import load_policies
 
     cfg = compose_config([f"table.policies_dir={saved_policies}", TINY_SEARCH, *TINY_PICK])
     site = replace(cfg.site, p_c=0.8)

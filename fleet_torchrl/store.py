@@ -1,0 +1,156 @@
+"""Where policies are published and found: policy names, run folders, saved-policy lookup.
+
+A training run publishes its policy under ``<table.policies_dir>/<name>/`` (``make train``)
+or ``<table.policies_dir>/<name>/seed<s>/`` (``make table``, several seeds), ``name`` being
+unique to what was trained (:func:`policy_name`: agent, state, objective, variant, site), so
+that no run replaces the policy of another recipe. Evaluations and experiments find them
+again by name (:func:`saved_policy_path`, :func:`load_policies`, :func:`make_policy`).
+
+This module sits above the agents (it reads whole configs, duck-typed: ``cfg.agent``,
+``cfg.state``, ``cfg.mdp``, ``cfg.site``, ``cfg.train``, ``cfg.table``, ``cfg.eval``) and
+below the root config, which it never imports.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import json
+from dataclasses import asdict
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import torch
+import yaml
+
+from .agents.base import Policy
+from .agents.policy_files import POLICY_FILE
+from .agents.registry import AGENTS, get_agent, load_policy_file
+from .sim import SiteConfig, SiteRanges
+
+# the packaged site presets, wherever in the package this module lives
+_SITE_PRESETS = resources.files(__name__.split(".")[0]).joinpath("conf", "site")
+
+
+def policy_name(cfg: Any) -> str:
+    """Name of the policy a run of ``cfg`` makes, and so of the folder ``make train``
+    publishes it to: one name per agent, state, objective and site, so that no run
+    replaces the policy of another recipe (``tabular``, ``dqn_all_throughput``,
+    ``search_mlp_five_vehicles``, ``dqn_partial_throughput_anchored_randomized``)."""
+    spec = get_agent(cfg.agent.name)
+    name = spec.name if spec.states is not None and len(spec.states) == 1 \
+        else f"{spec.name}_{cfg.state.name}"
+    # what else tells two runs apart: tabular vs tabular_throughput, search vs
+    # search_mlp, then the site (a DQN of the site distribution is not the default
+    # site's, whose folder it used to overwrite)
+    return name + cfg.agent.run_suffix(cfg.mdp) + site_suffix(cfg.site)
+
+
+@functools.cache
+def site_preset(name: str) -> SiteConfig | None:
+    """The site ``conf/site/<name>.yaml`` defines (its ``defaults`` chain followed), or None
+    if the package has no such preset. Plain YAML, no Hydra (tests/agents/test_registry.py
+    checks it against Hydra's composition)."""
+    path = _SITE_PRESETS.joinpath(f"{name}.yaml")
+    if not path.is_file():
+        return None
+    node = yaml.safe_load(path.read_text()) or {}
+    values: dict = {}
+    for parent in node.pop("defaults", []):
+        if parent in ("base_site", "_self_"):
+            continue
+        base = site_preset(parent)
+        if base is None:
+            return None
+        values.update(asdict(base))
+    values.update(node)
+    ranges = values.pop("ranges", None)
+    return SiteConfig(**values, ranges=SiteRanges(**ranges) if ranges else None)
+
+
+def site_suffix(site: SiteConfig) -> str:
+    """What a policy name adds for the site it was trained on: nothing for the default site,
+    ``_<preset>`` for a packaged preset as it stands (``_five_vehicles``, ``_randomized``),
+    and ``_<name>-<8 hex digits of its settings>`` for any other site (a preset with a
+    field changed, ``site.p_c=0.6``), which would otherwise publish into the folder of the
+    preset's policy."""
+    preset = site_preset(site.name)
+    if preset is not None and preset == site:
+        return "" if site.name == "default" else f"_{site.name}"
+    fields = asdict(site)
+    del fields["name"]
+    digest = hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()[:8]
+    return f"_{site.name}-{digest}"
+
+
+def default_policy_dir(cfg: Any) -> Path:
+    """Where a training run of ``cfg`` saves its policy, and where evaluation looks for it."""
+    if cfg.train.out_dir:
+        return Path(cfg.train.out_dir)
+    return Path(cfg.table.policies_dir) / policy_name(cfg)
+
+
+def seed_dir(root: str | Path, name: str, seed: int) -> Path:
+    """Folder of the policy ``name`` trained with ``seed`` (``make table`` trains several)."""
+    return Path(root) / name / f"seed{seed}"
+
+
+def saved_policy_path(root: str | Path, name: str) -> Path:
+    """The saved policy a name stands for: ``<root>/<name>/policy.pt`` if there is one, else
+    the policy of the lowest training seed, ``<root>/<name>/seed<k>/policy.pt``."""
+    folder = Path(root) / name
+    if (folder / POLICY_FILE).is_file():
+        return folder / POLICY_FILE
+    seeds = sorted((int(p.parent.name[4:]), p) for p in folder.glob(f"seed*/{POLICY_FILE}")
+                   if p.parent.name[4:].isdigit())
+    return seeds[0][1] if seeds else folder / POLICY_FILE
+
+
+def make_policy(cfg: Any, device: str | torch.device | None = None) -> Policy:
+    """The policy ``cfg.agent`` names: baselines from their config, learned ones from disk
+    (``agent.policy`` or the default location of their run)."""
+    spec = get_agent(cfg.agent.name)
+    device = device if device is not None else cfg.eval.device
+    if not spec.trainable:
+        return spec.make_policy(cfg.agent).to(device)
+    if cfg.agent.policy:
+        path = Path(cfg.agent.policy)
+    elif cfg.train.out_dir:
+        path = Path(cfg.train.out_dir)
+    else:  # make train's <name>/policy.pt, else the lowest seed make table trained
+        path = saved_policy_path(cfg.table.policies_dir, policy_name(cfg))
+        other = site_suffix(cfg.site)
+        if other and not path.is_file():  # names carry the site: say how to cross sites
+            home = Path(cfg.table.policies_dir) / policy_name(cfg).removesuffix(other)
+            raise FileNotFoundError(
+                f"no saved policy at {path} (a policy trained on this site); to evaluate "
+                f"one trained on another site here, pass agent.policy=<its folder>, "
+                f"e.g. agent.policy={home}")
+    policy = load_policy_file(path, device)
+    if not isinstance(policy, spec.policy_class):
+        raise ValueError(f"{path} holds a {type(policy).__name__}, not a policy of "
+                         f"agent={spec.name}: pass the matching agent= with agent.policy=")
+    if policy.encoding != cfg.state.name:
+        raise ValueError(f"{path} was trained on state={policy.encoding}, not "
+                         f"state={cfg.state.name}")
+    return policy
+
+
+def load_policies(cfg: Any, names: list[str]) -> dict[str, Policy]:
+    """Policies by name: baselines (``rule``, ``heuristic``) with their default parameters,
+    learned ones from ``cfg.table.policies_dir`` (:func:`saved_policy_path`)."""
+    out: dict[str, Policy] = {}
+    for name in names:
+        spec = AGENTS.get(name)
+        if spec is not None and not spec.trainable:
+            out[name] = spec.make_policy(spec.schema()).to(cfg.eval.device)
+        else:
+            out[name] = load_policy_file(saved_policy_path(cfg.table.policies_dir, name),
+                                         cfg.eval.device)
+            out[name].name = name
+    return out
+
+
+__all__ = ["default_policy_dir", "load_policies", "make_policy", "policy_name",
+           "saved_policy_path", "seed_dir", "site_preset", "site_suffix"]
