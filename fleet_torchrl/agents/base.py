@@ -25,7 +25,10 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
 from torch import Tensor, nn
 
+from ..env.encodings import get_encoding
+from ..sim import Site, SiteState
 from ..sim.fused import KernelPolicy
+from ..sim.rollout import DecisionContext
 
 PASS, CHARGE = 0, 1
 
@@ -67,6 +70,12 @@ class Policy(nn.Module):
     def policy_spec(self) -> dict[str, Any]:
         """Constructor arguments a policy file stores to rebuild this policy (JSON-ready)."""
         return {}
+
+    def decide(self, site: Site, state: SiteState, ctx: DecisionContext) -> Tensor:
+        """Actions ``[B]`` for the sites of ``state`` (those in ``ctx.need`` are used): the
+        policy's encoding of the state, then one batched :meth:`forward`. A policy that
+        works on the site itself (the rollout planner) overrides this."""
+        return self(get_encoding(self.encoding)(site, state))
 
     def kernel_policy(self) -> KernelPolicy | None:
         """The same decisions as :meth:`forward`, taken inside the compiled kernel (the

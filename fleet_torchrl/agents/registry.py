@@ -23,9 +23,11 @@ from ..sim import SiteConfig
 from .base import AgentConfig, Learner, Policy
 from .baselines import HeuristicAgentConfig, HeuristicPolicy, RuleAgentConfig, RulePolicy
 from .dqn import DQNAgentConfig, DQNLearner, DQNPolicy
+from .planner import BASELINE_BASES, PlannerAgentConfig, PlannerPolicy
 from .policy_files import POLICY_FILE, read_policy_file
 from .search import SearchAgentConfig, SearchLearner, SearchPolicy
 from .tabular import TabularAgentConfig, TabularLearner, TabularQPolicy
+from .threshold import ThresholdAgentConfig, ThresholdPolicy
 
 
 @dataclass(frozen=True)
@@ -96,10 +98,8 @@ def _search_learner(c: LearnerContext) -> Learner:
     init = c.agent.init
     if init == "uniform":
         start = None
-    elif init in AGENTS and not AGENTS[init].trainable:
-        start = AGENTS[init].make_policy(AGENTS[init].schema())
-    else:  # a saved policy: it must read the partial state the search's classes read
-        start = load_policy_file(init)
+    else:  # a baseline or a saved policy: it must read the partial state the classes read
+        start = base_policy(init)
         if start.encoding != "partial":
             raise ValueError(f"agent.init={init!r}: a {start.encoding!r}-state policy cannot "
                              "start a search over partial-state policies")
@@ -109,6 +109,25 @@ def _search_learner(c: LearnerContext) -> Learner:
 register(AgentSpec("rule", RuleAgentConfig, RulePolicy, make_policy=RulePolicy.from_config))
 register(AgentSpec("heuristic", HeuristicAgentConfig, HeuristicPolicy,
                    make_policy=HeuristicPolicy.from_config))
+register(AgentSpec("threshold", ThresholdAgentConfig, ThresholdPolicy,
+                   make_policy=ThresholdPolicy.from_config))
+
+
+def base_policy(name: str, device: str | torch.device = "cpu") -> Policy:
+    """A policy named by a baseline agent (its default settings) or a saved policy's path:
+    what the planner's ``agent.base`` and the search's ``agent.init`` accept."""
+    spec = AGENTS.get(name)
+    if spec is not None and not spec.trainable:
+        return spec.make_policy(spec.schema()).to(device)
+    return load_policy_file(name, device)
+
+
+def _planner(agent: PlannerAgentConfig) -> Policy:
+    assert agent.base in BASELINE_BASES or Path(agent.base).exists(), agent.base
+    return PlannerPolicy.from_config(agent, base_policy(agent.base))
+
+
+register(AgentSpec("planner", PlannerAgentConfig, PlannerPolicy, make_policy=_planner))
 register(AgentSpec("tabular", TabularAgentConfig, TabularQPolicy, make_learner=_tabular_learner,
                    states=("partial",)))
 register(AgentSpec("dqn", DQNAgentConfig, DQNPolicy, make_learner=_dqn_learner))
@@ -133,5 +152,5 @@ def load_policy_file(path: str | Path, device: str | torch.device = "cpu") -> Po
     return policy.to(device).eval()
 
 
-__all__ = ["AGENTS", "POLICY_FILE", "AgentSpec", "LearnerContext", "get_agent",
+__all__ = ["AGENTS", "POLICY_FILE", "AgentSpec", "LearnerContext", "base_policy", "get_agent",
            "load_policy_file", "register"]

@@ -216,8 +216,8 @@ def evaluate_population(policy_class: str, params: Tensor, site_cfg: SiteConfig,
     k = params.shape[0]
     encode = get_encoding("partial")
     params = params.cpu()
-    rec = run_sites(lambda site, s: population_actions(policy_class, params, encode(site, s),
-                                                       sizes, n_tc),
+    rec = run_sites(lambda site, s, ctx: population_actions(policy_class, params,
+                                                            encode(site, s), sizes, n_tc),
                     site_cfg, k * sites, ticks, seed, "cpu", fused=fused,
                     site_index=torch.arange(sites, dtype=torch.int64).repeat(k),
                     kernel_policy=population_kernel_policy(policy_class, params, sites, n_tc))

@@ -44,9 +44,9 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from ..sim import Site, SiteConfig, SiteParams, TickOutcome, rng
+from ..sim import Site, SiteConfig, SiteParams, rng
 from ..sim import fused as _fused
-from ..sim.fused import Events
+from ..sim.rollout import advance, advance_eager
 from .config import MDPConfig
 from .encodings import get_encoding
 
@@ -131,10 +131,8 @@ class FleetChargingEnv(EnvBase):
         s, m = self.state, self.mdp
         self.site.decide(s, torch.ones(b, dtype=torch.bool, device=self.device),
                          tensordict.get("action").reshape(b))
-        if self.fused:  # one kernel call: every site to its next decision, failure or tau_e
-            ev = _fused.advance(self.site, s, self._hash, m.tau_e)
-        else:
-            ev = self._run_eager()
+        # every site to its next decision, failure or tau_e (one kernel call, or tick by tick)
+        ev = advance(self.site, s, self._hash, m.tau_e, fused=self.fused)
         self._trips += ev.trips
         self._queue += ev.queue
         terminated = ev.failed
@@ -145,31 +143,6 @@ class FleetChargingEnv(EnvBase):
         td.set("truncated", truncated.unsqueeze(-1))
         td.set("done", (terminated | truncated).unsqueeze(-1))
         return td
-
-    def _run_eager(self) -> Events:
-        """The events of :func:`fleet_torchrl.sim.fused.advance`, one :meth:`Site.tick` at a
-        time: every site runs to its next decision, its failure or ``tau_e``."""
-        b, dev, s = self.num_sites, self.device, self.state
-        active = torch.ones(b, dtype=torch.bool, device=dev)
-        zeros = dict(dtype=torch.int64, device=dev)
-        ev = Events(ticks=torch.zeros(b, **zeros), trips=torch.zeros(b, **zeros),
-                    queue=torch.zeros(b, **zeros), arrived=torch.zeros(b, dtype=torch.bool,
-                                                                       device=dev),
-                    failed=torch.zeros(b, dtype=torch.bool, device=dev),
-                    queued=torch.zeros(b, dtype=torch.bool, device=dev))
-        while True:
-            out = self.site.tick(s, self.site.closures_hashed(self._hash, s.tick, s.params),
-                                 active)
-            ev.ticks += active
-            ev.trips += out.arrived
-            ev.queue += out.queue
-            for name in ("arrived", "failed"):
-                getattr(ev, name).copy_(torch.where(active, getattr(out, name),
-                                                    getattr(ev, name)))
-            ev.queued.copy_(torch.where(active, out.queue, ev.queued))
-            active &= ~(out.arrived | out.failed | (s.tick >= self.mdp.tau_e))
-            if not bool(active.any()):
-                return ev
 
     # ------------------------------------------------------------------ checkpoints
     _DYNAMIC = ("pos", "soc", "left", "charge", "tick")
@@ -222,14 +195,6 @@ class FleetChargingEnv(EnvBase):
         return self._observe()
 
     # ------------------------------------------------------------------ internals
-    def _advance(self, active: torch.Tensor) -> TickOutcome:
-        """One tick of the ``active`` sites with their closure draws; updates the counters."""
-        s = self.state
-        out = self.site.tick(s, self.site.closures_hashed(self._hash, s.tick, s.params), active)
-        self._trips += out.arrived
-        self._queue += out.queue
-        return out
-
     def _observe(self) -> TensorDictBase:
         return TensorDict(
             {
@@ -254,18 +219,12 @@ class FleetChargingEnv(EnvBase):
             self._queue.masked_fill_(todo, 0)
             running = todo & ~needs
             failed = torch.zeros_like(todo)
-            if self.fused:  # one kernel call: every site to its first decision or failure
-                if bool(running.any()):
-                    out = _fused.advance(self.site, self.state, self._hash, _NO_LIMIT,
-                                         running)
-                    self._trips += out.trips
-                    self._queue += out.queue
-                    failed = out.failed
-                running = torch.zeros_like(todo)
-            while bool(running.any()):
-                out = self._advance(running)
-                failed |= out.failed
-                running &= ~(out.arrived | out.failed)
+            if bool(running.any()):  # every new site to its first decision or failure
+                run = _fused.advance if self.fused else advance_eager
+                out = run(self.site, self.state, self._hash, _NO_LIMIT, active=running)
+                self._trips += out.trips
+                self._queue += out.queue
+                failed = out.failed
             if not bool(failed.any()):
                 return
             todo = failed

@@ -21,7 +21,6 @@ import torch
 from torch import Tensor
 
 from ..agents.base import Policy
-from ..env.encodings import get_encoding
 from ..sim import SiteConfig
 from ..sim.rollout import run_sites
 from ..utils.numerics import flush_denormals
@@ -44,9 +43,8 @@ def simulate(policy: Policy, site_cfg: SiteConfig, n_sims: int = 1000, ticks: in
     """
     device = torch.device(device)
     flush_denormals()  # subnormal network weights would slow every forward pass 10x
-    encode = get_encoding(policy.encoding)
     policy = policy.to(device).eval()
-    return run_sites(lambda site, s: policy(encode(site, s)), site_cfg, n_sims, ticks, seed,
+    return run_sites(policy.decide, site_cfg, n_sims, ticks, seed,
                      device, chunk, fused, progress=progress,
                      desc=desc or f"eval {policy.name}",
                      kernel_policy=policy.kernel_policy() if in_kernel else None)

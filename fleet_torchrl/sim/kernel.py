@@ -1,6 +1,6 @@
 """The compiled simulation kernel: every site runs its own ticks, compiled by numba.
 
-One source, two targets. The functions below up to :func:`run_sites` are plain Python in the
+One source, two targets. The functions below up to :func:`run_site_range` are plain Python in the
 subset numba compiles for both the CPU (``numba.njit``, cached on disk per machine) and
 CUDA (``numba.cuda.jit(device=True)``, built by :func:`cuda_kernel` from the same Python
 functions with their calls rebound to the device versions). Nothing here knows torch; the
@@ -140,7 +140,7 @@ def decide(PL, E, nv, t_c, kind, row, pol_thr, pol_table, n_tc):
     return pol_table[row, cell] != 0
 
 
-def run_sites(b0, b1, pos, soc, left, charge, tick, site_hash, limit, active, n_veh, t_c,
+def run_site_range(b0, b1, pos, soc, left, charge, tick, site_hash, limit, active, n_veh, t_c,
               gain, closure, tables, geo, energy, kind, pol_row, pol_thr, pol_table, n_tc,
               o_int, o_flag, PL, E):
     """Run each active site ``b0 <= b < b1`` from its state to a failure, its tick limit, or
@@ -253,10 +253,10 @@ mix32 = _jit(mix32)
 closed_now = _jit(closed_now)
 soc_bin = _jit(soc_bin)
 decide = njit(cache=True, nogil=True, inline="always")(decide)
-run_sites = _jit(run_sites)
+run_site_range = _jit(run_site_range)
 # the device functions, callees first: what cuda_kernel rebinds to their CUDA versions
-DEVICE_FUNCTIONS = ("mix32", "closed_now", "soc_bin", "decide", "run_sites")
-CHUNK = 64  # sites per run_sites call of the parallel kernel
+DEVICE_FUNCTIONS = ("mix32", "closed_now", "soc_bin", "decide", "run_site_range")
+CHUNK = 64  # sites per run_site_range call of the parallel kernel
 
 
 @njit(cache=True, parallel=True, nogil=True)
@@ -270,7 +270,7 @@ def advance_parallel(pos, soc, left, charge, tick, site_hash, limit, active, n_v
     nb = pos.shape[1]
     for c in prange((nb + CHUNK - 1) // CHUNK):
         k = get_thread_id()
-        run_sites(c * CHUNK, min(nb, (c + 1) * CHUNK), pos, soc, left, charge, tick,
+        run_site_range(c * CHUNK, min(nb, (c + 1) * CHUNK), pos, soc, left, charge, tick,
                   site_hash, limit, active, n_veh, t_c, gain, closure, tables, geo, energy,
                   kind, pol_row, pol_thr, pol_table, n_tc, o_int, o_flag, PL[k], E[k])
 
@@ -282,7 +282,7 @@ def advance_serial(pos, soc, left, charge, tick, site_hash, limit, active, n_veh
     """The same on one core (small batches, short calls, one thread asked for)."""
     PL = np.empty((2, MAXV), np.int64)
     E = np.empty(MAXV, np.float32)
-    run_sites(0, pos.shape[1], pos, soc, left, charge, tick, site_hash, limit, active, n_veh,
+    run_site_range(0, pos.shape[1], pos, soc, left, charge, tick, site_hash, limit, active, n_veh,
               t_c, gain, closure, tables, geo, energy, kind, pol_row, pol_thr, pol_table, n_tc,
               o_int, o_flag, PL, E)
 
@@ -297,7 +297,7 @@ def advance_cuda(pos, soc, left, charge, tick, site_hash, limit, active, n_veh, 
     if b < pos.shape[1]:
         PL = cuda.local.array((2, MAXV), int64)  # noqa: F821
         E = cuda.local.array(MAXV, float32)  # noqa: F821
-        run_sites(b, b + 1, pos, soc, left, charge, tick, site_hash, limit, active, n_veh,
+        run_site_range(b, b + 1, pos, soc, left, charge, tick, site_hash, limit, active, n_veh,
                   t_c, gain, closure, tables, geo, energy, kind, pol_row, pol_thr, pol_table,
                   n_tc, o_int, o_flag, PL, E)
 

@@ -26,6 +26,7 @@ STREAM_INIT_SOC = 3
 STREAM_TRAINING = 4  # derives the environment's seed: training never replays evaluation sites
 STREAM_SEARCH = 5  # the sites of each generation of the direct policy search
 STREAM_SITE = 6  # the parameters of each site drawn from a site distribution
+STREAM_PLANNER = 7  # the futures a rollout planner imagines (never the site's own closures)
 
 
 def training_seed(seed: int) -> int:

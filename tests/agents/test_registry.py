@@ -39,14 +39,14 @@ def test_run_names_follow_the_accepted_states():
 
 # a learner written outside the package: one schema, one policy, one learner, one entry
 @dataclass
-class ThresholdAgentConfig(AgentConfig):
-    name: str = "threshold"
+class FloorAgentConfig(AgentConfig):
+    name: str = "floor"
     num_sites: int = 4
     policy: str | None = None
 
 
-class ThresholdPolicy(Policy):
-    name = "threshold"
+class FloorPolicy(Policy):
+    name = "floor"
 
     def __init__(self) -> None:
         super().__init__()
@@ -56,14 +56,14 @@ class ThresholdPolicy(Policy):
         return (obs[..., 0] <= self.threshold).long()
 
 
-class ThresholdLearner(Learner):
+class FloorLearner(Learner):
     """Charges below the lowest soc_D it has seen (learns something checkable)."""
 
     steps_per_round = 6
 
     def __init__(self) -> None:
         super().__init__()
-        self.greedy = ThresholdPolicy()
+        self.greedy = FloorPolicy()
         self.greedy.threshold.fill_(1.0)
         self.frames = 0
 
@@ -87,30 +87,30 @@ class ThresholdLearner(Learner):
 
 
 @pytest.fixture
-def threshold_agent():
-    spec = register(AgentSpec("threshold", ThresholdAgentConfig, ThresholdPolicy,
-                              make_learner=lambda ctx: ThresholdLearner()))
-    ConfigStore.instance().store(group="agent", name="threshold", node=ThresholdAgentConfig)
+def floor_agent():
+    spec = register(AgentSpec("floor", FloorAgentConfig, FloorPolicy,
+                              make_learner=lambda ctx: FloorLearner()))
+    ConfigStore.instance().store(group="agent", name="floor", node=FloorAgentConfig)
     yield spec
-    del AGENTS["threshold"]
+    del AGENTS["floor"]
 
 
 def test_a_new_learner_trains_saves_and_evaluates_through_the_registry(tmp_path,
-                                                                       threshold_agent):
+                                                                       floor_agent):
     from fleet_torchrl.training import Trainer
 
-    cfg = compose_config(["agent=threshold", "train.max_episodes=8", "train.eval_every=1",
+    cfg = compose_config(["agent=floor", "train.max_episodes=8", "train.eval_every=1",
                           "train.eval_sims=8", "train.eval_ticks=200", "train.progress=false",
                           "train.tensorboard=false", f"train.out_dir={tmp_path / 'pol'}"])
     trainer = Trainer(cfg, tmp_path / "run")
     summary = trainer.run()
-    assert summary["name"] == "threshold_partial" and summary["rounds"] == 2
+    assert summary["name"] == "floor_partial" and summary["rounds"] == 2
     assert summary["frames"] == trainer.learner.frames == 2 * 6 * 4  # every step learned from
     saved = load_policy_file(tmp_path / "pol")
-    assert isinstance(saved, ThresholdPolicy)
+    assert isinstance(saved, FloorPolicy)
     assert 0.3 <= float(saved.threshold) < 1.0  # a soc_D it saw, not the initial 1.0
-    cfg = compose_config(["agent=threshold", f"agent.policy={tmp_path / 'pol'}"])
-    assert isinstance(make_policy(cfg), ThresholdPolicy)
+    cfg = compose_config(["agent=floor", f"agent.policy={tmp_path / 'pol'}"])
+    assert isinstance(make_policy(cfg), FloorPolicy)
 
 
 def test_a_policy_file_of_another_agent_is_refused(tmp_path):

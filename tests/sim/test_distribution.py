@@ -81,7 +81,7 @@ def test_mixed_batch_is_each_single_site_bit_for_bit(use_fused):
     n, ticks, seed = 48, 1500, 11
     policy, encode = HeuristicPolicy(), get_encoding("partial")
 
-    def decide(site, s):
+    def decide(site, s, ctx):
         return policy(encode(site, s))
 
     mixed = run_sites(decide, RANDOMIZED, n, ticks, seed, fused=use_fused)

@@ -1,0 +1,139 @@
+"""A simulation-based lookahead policy (``agent=planner``): one step of policy improvement.
+
+At each decision the planner simulates, for both actions, ``rollouts`` sampled futures of
+``horizon`` ticks from the site's current state, every later decision taken by a base policy
+(``agent.base``: the heuristic by default, any baseline, or a saved policy file), and picks
+the better action:
+
+* **Common random numbers.** Future ``k`` of both actions sees the same closures, so the
+  comparison is paired: the difference of their scores has far less noise than either.
+* **Its own streams.** A future's closures are drawn from the planner's stream
+  (``rng.STREAM_PLANNER``: planner seed, the site's index, the decision's tick, ``k``),
+  never from the evaluated site's: the planner does not know the site's own future, and its
+  decision at tick ``t`` depends on the state at ``t`` alone (tests/agents/test_planner.py).
+* **Score.** Failures dominate (fewer failed futures wins); then the mean over futures of
+  trips in the horizon plus ``energy_value`` trips per unit of charge left in the fleet's
+  batteries at the horizon (trips alone over a short horizon favour never charging; the
+  value is a measured choice, docs/PLANNER.md).
+* **Confidence.** The planner leaves the base policy's action only when the other one
+  scores better by ``confidence`` standard errors of the paired difference (or fails in
+  fewer futures): where the futures cannot tell the actions apart, it acts as the base.
+  Without this gate the noise of a few futures made the planner worse than its base.
+
+So the planner with base ``P`` is one step of policy improvement over ``P``: where it
+gains significantly over ``P``, ``P`` was not optimal (``make table`` and the sweeps report
+what this step adds, MODEL §3.6).
+
+Cost: ``2 x rollouts x horizon`` site-ticks per decision, all decisions of an epoch in one
+batch: with the base policy inside the compiled kernel (the heuristic, threshold policies,
+tables) one kernel call per decision epoch; a network base decides its rollouts' arrivals
+with batched forward passes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from ..sim import Site, SiteState, rng
+from ..sim.rollout import DecisionContext, advance
+from ..utils.checks import ConfigError, check_range
+from .base import AgentConfig, Policy
+
+BASELINE_BASES = ("rule", "heuristic", "threshold")
+
+
+@dataclass
+class PlannerAgentConfig(AgentConfig):
+    """The rollout planner (module docstring). Defaults from the study in docs/PLANNER.md."""
+
+    name: str = "planner"
+    base: str = "heuristic"  # base policy: rule | heuristic | threshold | a saved policy path
+    rollouts: int = 16  # futures per action (K)
+    horizon: int = 200  # ticks per future (H)
+    energy_value: float = 0.02  # trips per unit of soc left in the fleet at the horizon
+    confidence: float = 2.0  # standard errors by which the other action must score better
+    seed: int = 0  # the planner's own random streams
+
+    def validate(self, cfg: Any = None, path: str = "agent") -> PlannerAgentConfig:
+        if self.base not in BASELINE_BASES:
+            p = Path(self.base)
+            if not (p.is_file() or (p / "policy.pt").is_file()):
+                raise ConfigError(f"{path}.base={self.base!r} is invalid: allowed one of "
+                                  f"{', '.join(BASELINE_BASES)} or the path of a saved policy "
+                                  "(policy.pt or its folder) that exists")
+        check_range(f"{path}.rollouts", self.rollouts, 2, 4096)
+        check_range(f"{path}.horizon", self.horizon, 1, 1_000_000)
+        check_range(f"{path}.energy_value", self.energy_value, 0.0, 10.0)
+        check_range(f"{path}.confidence", self.confidence, 0.0, 100.0)
+        check_range(f"{path}.seed", self.seed, 0, 2**32 - 1)
+        return self
+
+
+class PlannerPolicy(Policy):
+    """The rollout planner around a base policy (module docstring). It decides from the
+    site's state (:meth:`decide`), not from an encoded observation."""
+
+    name = "planner"
+
+    def __init__(self, base: Policy, rollouts: int = 16, horizon: int = 200,
+                 energy_value: float = 0.02, confidence: float = 2.0, seed: int = 0) -> None:
+        super().__init__()
+        if isinstance(base, PlannerPolicy):
+            raise ValueError("a planner's base policy cannot be a planner")
+        self.base = base
+        self.encoding = base.encoding
+        self.rollouts, self.horizon = int(rollouts), int(horizon)
+        self.energy_value, self.confidence = float(energy_value), float(confidence)
+        self.seed = int(seed)
+        self.stats = {"decisions": 0, "changed": 0}  # how often it left the base's action
+
+    def forward(self, obs: Tensor) -> Tensor:
+        raise TypeError("the planner decides from the site's state, not from an observation: "
+                        "call decide(site, state, ctx) (the evaluation protocol does)")
+
+    @torch.no_grad()
+    def decide(self, site: Site, state: SiteState, ctx: DecisionContext) -> Tensor:
+        act = self.base.decide(site, state, ctx)
+        d = ctx.need.nonzero().squeeze(1)
+        n, k = d.numel(), self.rollouts
+        if n == 0:
+            return act
+        dev = state.pos.device
+        rep = d.repeat(2 * k)  # rollout (a, j, i) at (a * k + j) * n + i
+        rs = state.select(rep)
+        rs.charge = torch.arange(2, device=dev).repeat_interleave(k * n).bool()
+        future = torch.arange(k, device=dev).repeat_interleave(n).repeat(2)
+        h = rng.hash_ints(self.seed, ctx.index[rep], rs.tick, future, rng.STREAM_PLANNER,
+                          device=dev)
+        ev = advance(site, rs, h, rs.tick + self.horizon, self.base.decide,
+                     self.base.kernel_policy(), ctx.index[rep], ctx.fused)
+        real = rs.pos != site.park  # the vehicles a site of a distribution does not have
+        energy = (rs.soc.double() * real).sum(0)
+        score = (ev.trips.double() + self.energy_value * energy).view(2, k, n)
+        fails = ev.failed.view(2, k, n).sum(1)
+        base_a = act[d].long()
+        diff = score[1] - score[0]  # paired over common futures: charge minus pass
+        gain = torch.where(base_a == 1, -diff, diff)  # the other action minus the base's
+        se = gain.std(0) / k ** 0.5
+        f_base = torch.where(base_a == 1, fails[1], fails[0])
+        f_other = torch.where(base_a == 1, fails[0], fails[1])
+        switch = (f_other < f_base) | ((f_other == f_base)
+                                       & (gain.mean(0) > self.confidence * se + 1e-9))
+        self.stats["decisions"] += n
+        self.stats["changed"] += int(switch.sum())
+        out = act.clone()
+        out[d] = torch.where(switch, 1 - base_a, base_a).to(act.dtype)
+        return out
+
+    @classmethod
+    def from_config(cls, agent: PlannerAgentConfig, base: Policy) -> PlannerPolicy:
+        return cls(base, agent.rollouts, agent.horizon, agent.energy_value, agent.confidence,
+                   agent.seed)
+
+
+__all__ = ["PlannerAgentConfig", "PlannerPolicy"]
