@@ -126,21 +126,21 @@ def test_readme_quoting_of_a_list_override_with_equals_signs_reaches_hydra_intac
 
     from fleet_torchrl.config import compose_config
 
-    want = ["agent.generations=50", "agent.sites=128"]
+    want = ["agent.rollouts=32", "agent.horizon=300"]
     line = next(ln for ln in README.read_text().splitlines()
-                if ln.startswith("make sweep-pc ARGS=") and "search_overrides" in ln)
+                if ln.startswith("make sweep-pc ARGS=") and "planner_overrides" in ln)
     user = shlex.split(line)  # what the user's shell hands to make
     if shutil.which("make") is not None:
         r = subprocess.run(["make", "-n", "-C", str(README.parent), *user[1:]],
                            capture_output=True, text=True, timeout=60)
         assert r.returncode == 0, r.stderr
         recipe = next(ln for ln in r.stdout.splitlines() if "fleet_torchrl.sweeps -m" in ln)
-        arg = next(a for a in shlex.split(recipe) if a.startswith("sweep.search_overrides="))
+        arg = next(a for a in shlex.split(recipe) if a.startswith("sweep.planner_overrides="))
         cfg = compose_config(["+experiment=sweep_pc", arg])
-        assert cfg.sweep.search_overrides == want
+        assert cfg.sweep.planner_overrides == want
     sweeps = [o for o in _readme_commands("sweeps")
-              if any(a.startswith("sweep.search_overrides=") for a in o)]
+              if any(a.startswith("sweep.planner_overrides=") for a in o)]
     assert sweeps, "the README shows no python -m form of the quoting"
     for o in sweeps:
         cfg = compose_config([a for a in o if a != "-m"])
-        assert cfg.sweep.search_overrides == want
+        assert cfg.sweep.planner_overrides == want

@@ -6,12 +6,21 @@ simulations, then by its mean trips, so a candidate with any failure never beats
 It is this project's reference optimum of a policy class on a site: what the best member of
 the class achieves there, against which the learners' gains can be judged (MODEL §3.4).
 
-Policy classes (``agent.policy_class``), both on the ``partial`` encoding:
+Policy classes (``agent.policy_class``), all on the ``partial`` encoding:
 
-* ``table``: one action per cell of the 200-cell discretisation of the tabular learner
-  (:func:`fleet_torchrl.agents.tabular.state_index`). The search distribution is one
+* ``table``: one action per cell of the discretisation of the tabular learner
+  (:func:`fleet_torchrl.agents.tabular.state_index`), with ``agent.tc_bins`` charger bins
+  (2: free / busy, the tabular learner's 200 cells; more: the busy time cut into shares, so
+  the class can tell a charger that frees soon). The search distribution is one
   Bernoulli probability of *charge* per cell, started from a named policy (``agent.init``,
   ``p = 1 - p_min`` where it charges, ``p_min`` elsewhere; ``uniform``: 0.5 everywhere).
+* ``threshold``: the six thresholds of :class:`fleet_torchrl.agents.threshold.ThresholdPolicy`
+  (charge below ``low``; early while the charger is free; while it frees within ``busy_tc``).
+  The search distribution is a diagonal Gaussian over them (socs / 100, ``sigma_init``
+  defaults to 0.1 for this class), centred on the start's thresholds (the rule, the
+  heuristic or a threshold policy; any other start begins at the heuristic's). A threshold
+  outside the socs a site can have turns its rule off, so the Gaussian needs no special
+  values.
 * ``mlp``: a small network ``3 -> hidden (tanh) x depth -> 1`` that charges iff its output is
   positive. The search distribution is a diagonal Gaussian over its weights with standard
   deviation ``sigma_init``, centred on a network that imitates the ``agent.init`` policy
@@ -46,14 +55,15 @@ from torch import Tensor
 from ..env.encodings import get_encoding
 from ..sim import SiteConfig
 from ..sim import rng as _rng
-from ..sim.fused import TABLE, KernelPolicy
+from ..sim.fused import TABLE, THRESHOLD, KernelPolicy
 from ..sim.rollout import run_sites
 from ..utils.checks import ConfigError, check_choice, check_range
 from .base import AgentConfig, Learner, Policy
 from .tabular import N_SOC_BINS, n_cells, state_index
+from .threshold import ThresholdPolicy, threshold_actions, threshold_row
 
-POLICY_CLASSES = ("table", "mlp")
-INITS = ("rule", "heuristic", "uniform")
+POLICY_CLASSES = ("table", "mlp", "threshold")
+INITS = ("rule", "heuristic", "threshold", "uniform")
 N_FEATURES = 3  # the partial encoding
 
 
@@ -76,7 +86,7 @@ class SearchAgentConfig(AgentConfig):
     tc_bins: int = 2  # table: charger bins (free, then tc_bins - 1 shares of its busy time)
     hidden: int = 16  # mlp: units per hidden layer
     depth: int = 2  # mlp: hidden layers
-    sigma_init: float = 1.0  # mlp: initial standard deviation of every weight
+    sigma_init: float | None = None  # mlp (default 1.0) / threshold (0.1): initial std dev
     sigma_min: float = 0.02  # mlp: standard deviations stay at least this
     num_sites: int = 1  # sites of the training loop's environment (the search runs its own)
     policy: str | None = None  # saved policy for evaluation (default results/policies/search)
@@ -102,11 +112,18 @@ class SearchAgentConfig(AgentConfig):
         check_range(f"{path}.tc_bins", self.tc_bins, 2, 64)
         check_range(f"{path}.hidden", self.hidden, 1, 4096)
         check_range(f"{path}.depth", self.depth, 0, 16)
-        check_range(f"{path}.sigma_init", self.sigma_init, 1e-6, 100.0)
-        check_range(f"{path}.sigma_min", self.sigma_min, 0.0, self.sigma_init,
-                    allowed=f"[0, sigma_init = {self.sigma_init}]")
+        check_range(f"{path}.sigma_init", self.initial_sigma, 1e-6, 100.0)
+        check_range(f"{path}.sigma_min", self.sigma_min, 0.0, self.initial_sigma,
+                    allowed=f"[0, sigma_init = {self.initial_sigma}]")
         check_range(f"{path}.num_sites", self.num_sites, 1, 1_000_000)
         return self
+
+    @property
+    def initial_sigma(self) -> float:
+        """``sigma_init``, or the class's default (threshold 0.1, mlp 1.0)."""
+        if self.sigma_init is not None:
+            return float(self.sigma_init)
+        return 0.1 if self.policy_class == "threshold" else 1.0
 
     def training_rounds(self, train: Any) -> int:
         return self.generations
@@ -115,7 +132,9 @@ class SearchAgentConfig(AgentConfig):
         return "trips"  # the search maximises mean trips directly, whatever mdp.reward says
 
     def run_suffix(self, mdp: Any) -> str:
-        return "_mlp" if self.policy_class == "mlp" else ""
+        if self.policy_class == "table":
+            return "" if self.tc_bins == 2 else f"_tc{self.tc_bins}"
+        return f"_{self.policy_class}"
 
 
 # ------------------------------------------------------------------------ the policy class
@@ -161,6 +180,8 @@ class SearchPolicy(Policy):
         elif policy_class == "mlp":
             self.sizes = mlp_sizes(hidden, depth)
             self.register_buffer("theta", torch.zeros(mlp_n_params(self.sizes)))
+        elif policy_class == "threshold":
+            self.register_buffer("theta", threshold_row(40.0))
         else:
             raise ValueError(f"policy_class={policy_class!r} is invalid: allowed one of "
                              f"{', '.join(POLICY_CLASSES)}")
@@ -190,6 +211,8 @@ def population_actions(policy_class: str, params: Tensor, obs: Tensor,
     if policy_class == "table":
         cell = state_index(obs, n_tc).view(k, -1)
         return params.gather(1, cell).reshape(-1).long()
+    if policy_class == "threshold":
+        return threshold_actions(params, obs.view(k, -1, obs.shape[-1])).reshape(-1)
     assert sizes is not None
     return (mlp_logits(params, obs.view(k, -1, obs.shape[-1]), sizes) > 0).reshape(-1).long()
 
@@ -198,11 +221,13 @@ def population_kernel_policy(policy_class: str, params: Tensor, sites: int,
                              n_tc: int = 2) -> KernelPolicy | None:
     """The in-kernel form of ``K`` candidates (``params [K, P]``) on a candidate-major batch
     of ``K * sites`` sites, or ``None`` for the network class (batched forward passes)."""
-    if policy_class != "table":
-        return None
     k = params.shape[0]
     rows = torch.arange(k, dtype=torch.int64).repeat_interleave(sites)
-    return KernelPolicy(TABLE, table=params.to(torch.int8).cpu(), n_tc=n_tc, rows=rows)
+    if policy_class == "table":
+        return KernelPolicy(TABLE, table=params.to(torch.int8).cpu(), n_tc=n_tc, rows=rows)
+    if policy_class == "threshold":
+        return KernelPolicy(THRESHOLD, thresholds=params.to(torch.float32).cpu(), rows=rows)
+    return None
 
 
 @torch.no_grad()
@@ -265,10 +290,13 @@ class SearchLearner(Learner):
             self.register_buffer("std", torch.zeros(0))
         else:
             n = self.greedy.theta.numel()
-            start = torch.zeros(n) if init_policy is None else clone_policy(
-                init_policy, self.sizes, seed, site_cfg)
+            if agent.policy_class == "threshold":
+                start = threshold_start(init_policy)
+            else:
+                start = torch.zeros(n) if init_policy is None else clone_policy(
+                    init_policy, self.sizes, seed, site_cfg)
             self.register_buffer("mean", start)
-            self.register_buffer("std", torch.full((n,), agent.sigma_init))
+            self.register_buffer("std", torch.full((n,), agent.initial_sigma))
         self.register_buffer("generation", torch.zeros((), dtype=torch.int64))
         self._sync_greedy()
 
@@ -370,6 +398,33 @@ def clone_policy(policy: Policy, sizes: list[tuple[int, int]], seed: int,
         loss.backward()
         opt.step()
     return theta.detach()
+
+
+# finite stand-ins for "off" in a Gaussian search, at the edge where a small step turns the
+# rule on (a live soc is at least soc_low, 30 by default; TC of a busy charger is above 0)
+_OFF = {1: 0.3, 3: 1.0, 4: 0.0, 5: 0.3}  # free_upper, others_below, busy_tc, busy_upper
+
+
+def threshold_start(policy: Policy | None) -> Tensor:
+    """The thresholds a threshold-class search starts from: the start policy's own (the
+    rule, the heuristic, a threshold policy), else the heuristic's; rules a policy does not
+    use are set just off (finite, so the Gaussian can move them on)."""
+    from .baselines import HeuristicPolicy, RulePolicy
+
+    if isinstance(policy, ThresholdPolicy):
+        row = policy.theta.clone()
+    elif isinstance(policy, SearchPolicy) and policy.policy_class == "threshold":
+        row = policy.theta.clone()
+    elif isinstance(policy, RulePolicy):
+        row = threshold_row(policy.threshold)
+    else:
+        h = policy if isinstance(policy, HeuristicPolicy) else HeuristicPolicy()
+        row = threshold_row(h.threshold, h.upper, 0.0,
+                            h.others_below if h.others_below < 100 else None)
+    for i, off in _OFF.items():
+        if not torch.isfinite(row[i]) or (i == 4 and row[i] < 0):
+            row[i] = off
+    return row.float()
 
 
 def cell_centres(n_tc: int = 2) -> Tensor:

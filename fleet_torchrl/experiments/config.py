@@ -61,31 +61,55 @@ class SweepConfig:
     out: str = "results/sweeps"
     policies: list[str] = field(default_factory=lambda: [
         "rule", "heuristic", "tabular", "dqn_partial", "dqn_all", "generalist", "search"])
-    # the point's own optimum: a direct policy search (agent=search) on the point's site,
-    # cached under search_dir by its training settings; [] of overrides = the search defaults
+    # the point's own searches (agent=search on the point's site), each a row named by its
+    # key with the overrides of its search; cached under search_dir by their settings.
+    # Classes that read the charger's remaining time: thresholds, a table with 4 TC bins.
+    # search=false skips them (a dict override merges into this one, it cannot empty it)
     search: bool = True
-    search_seeded: bool = True  # start it from the point's best partial-state policy
-    # the set the optimum row is picked on (the search's selection seed, apart from eval.seed):
-    # its policy or a better one of sweep.policies; larger than the search's own set
-    pick_sims: int = 1000
+    searches: dict[str, list[str]] = field(default_factory=lambda: {
+        "search_threshold": ["agent.policy_class=threshold", "agent.sites=256",
+                             "agent.generations=40"],
+        "search_table": ["agent.policy_class=table", "agent.tc_bins=4"],
+    })
+    search_seeded: bool = True  # each search starts from the best start of its class
+    # the rollout planner (agent=planner, overrides of its settings), base the heuristic,
+    # and the one-step improvement of these policies ("best_learned": the best learned
+    # policy of sweep.policies on the pick set): rows planner, planner_<name>
+    planner: bool = True
+    planner_overrides: list[str] = field(default_factory=list)
+    improve: list[str] = field(default_factory=lambda: ["best_learned"])
+    # the set best_known is picked on (the searches' selection seed, apart from eval.seed):
+    # the best of every row above and every policy
+    pick_sims: int = 500
     pick_ticks: int = 10_000
-    search_overrides: list[str] = field(default_factory=list)
     search_dir: str = "results/search"
 
     def validate(self, known: tuple[str, ...], path: str = "sweep") -> SweepConfig:
         check_choice(f"{path}.param", self.param, SWEEP_PARAMS)
         check_range(f"{path}.pick_sims", self.pick_sims, 1, 10**7)
         check_range(f"{path}.pick_ticks", self.pick_ticks, 1, 10**8)
-        for i, o in enumerate(self.search_overrides):
-            key = o.split("=", 1)[0].lstrip("+~")
-            if key.split(".")[0] not in ("agent", "train", "seed") or key in ("agent",
-                                                                              "agent.name"):
-                raise ConfigError(f"{path}.search_overrides[{i}]={o!r} is invalid: allowed "
-                                  "overrides of agent.* (the search's settings), train.* or "
-                                  "seed (the site is the point's)")
+        for label, overrides in self.searches.items():
+            if not label.startswith("search"):
+                raise ConfigError(f"{path}.searches.{label} is invalid: a search row's name "
+                                  "starts with 'search' (e.g. search_threshold)")
+            check_overrides(f"{path}.searches.{label}", overrides, ("agent", "train", "seed"))
+        check_overrides(f"{path}.planner_overrides", self.planner_overrides, ("agent",))
         for i, name in enumerate(self.policies):
             check_choice(f"{path}.policies[{i}]", name, known)
+        for i, name in enumerate(self.improve):
+            check_choice(f"{path}.improve[{i}]", name, (*self.policies, "best_learned"))
         return self
+
+
+def check_overrides(path: str, overrides: list[str], groups: tuple[str, ...]) -> None:
+    """Overrides of a run inside an experiment may set fields of ``groups`` only (never the
+    agent itself, nor the site: it is the experiment's)."""
+    for i, o in enumerate(overrides):
+        key = o.split("=", 1)[0].lstrip("+~")
+        if key.split(".")[0] not in groups or key in ("agent", "agent.name"):
+            raise ConfigError(f"{path}[{i}]={o!r} is invalid: allowed overrides of "
+                              + ", ".join(f"{g}.*" if g != "seed" else g for g in groups)
+                              + " (the site is the point's)")
 
 
 SWEEP_PARAMS = ("p_c", "t_c", "n_vehicles")

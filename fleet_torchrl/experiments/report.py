@@ -43,8 +43,8 @@ def _sweep_pivot(rows: list[dict[str, Any]]) -> str:
                 cells.append("")
             else:
                 fail = f", fail {r['failure_rate']:.3f}" if r["failure_rate"] > 0 else ""
-                share = r.get("share_of_optimum_pct")
-                share = (f" ({share:.0f} %)" if share is not None and p != "optimum"
+                share = r.get("share_of_best_known_pct")
+                share = (f" ({share:.0f} %)" if share is not None and p != "best_known"
                          else "")
                 cells.append(f"{r['gain_pct']:+.2f} ± {r['gain_ci95']:.2f}{share}{fail}")
         lines.append(f"| {v} | " + " | ".join(cells) + " |")
@@ -104,12 +104,15 @@ def build(results: Path, out: Path) -> str:
 
     parts += ["## Generalisation sweeps (MODEL §5 item 3)", "",
               "Policies trained on the default site and the `generalist` (trained on the "
-              "site distribution, MODEL §3.5), evaluated on changed sites, beside `optimum`: "
-              "the direct policy search (MODEL §3.4) run on the point's own site from the "
-              "point's best policy, or the policy that beats it on the point's pick set "
-              "(sites apart from the evaluation's). "
-              "Cells: trips gain over the rule in % ± 95% CI, in brackets the share of the "
-              "optimum's gain, and the failure rate when not zero.", ""]
+              "site distribution, MODEL §3.5), evaluated on changed sites, beside the point's "
+              "own searches (`search_threshold`, `search_table`: MODEL §3.4, classes that "
+              "read the charger's remaining time), the rollout planner over the heuristic "
+              "(`planner`, MODEL §3.6) and over the point's best learned policy "
+              "(`planner_<name>`: what one step of policy improvement adds to it), and "
+              "`best_known`: the best of all of them on the point's pick set (sites apart "
+              "from the evaluation's; MODEL §5). "
+              "Cells: trips gain over the rule in % ± 95% CI, in brackets the share of "
+              "`best_known`'s gain, and the failure rate when not zero.", ""]
     for name, label in SWEEPS:
         js = results / "sweeps" / f"{name}.json"
         parts += [f"### {label}", ""]

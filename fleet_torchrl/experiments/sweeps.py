@@ -1,32 +1,36 @@
 """Generalisation sweeps (MODEL §5 item 3): policies trained on the default site, evaluated
-on changed sites, next to the best policy the point itself allows.
+on changed sites, next to the best policy known at each point.
 
     make sweep-pc      # = python -m fleet_torchrl.sweeps -m +experiment=sweep_pc
                        #   then python -m fleet_torchrl.sweeps_summary pc
 
-Each Hydra job evaluates every policy of ``sweep.policies`` at one point (``site.<param> =
-sweep.value``) with the evaluation protocol (``eval.n_sims`` x ``eval.ticks``, common random
-numbers: all policies of a point see the same sites). With ``sweep.search`` (default) it also
-runs the direct policy search (``agent=search``, MODEL §3.4) on the point's own site and
-evaluates what it found as the row ``optimum``; every row then reports its share of the
-optimum's gain over the rule. Policies are compared on the point's *pick set*: the search's
-selection seed (``train.eval_seed``, never the evaluation's sites) with ``sweep.pick_sims``
-x ``sweep.pick_ticks``. With ``sweep.search_seeded`` (default) the search starts from the
-``partial``-state policy of ``sweep.policies`` whose start (for the table class, its action
-table) does best on the pick set, so the optimum begins at the best policy known there and
-the search improves on it. The row ``optimum`` is what the search found, unless one of the
-policies it competes with does better on the pick set: the best policy known at the point,
-chosen without the evaluation's sites (the JSON's ``search.optimum_from`` says which). A
-search is cached under ``sweep.search_dir/<point>/<key>``, ``key`` a hash of its training
-settings and of the policy it starts from, and reused whenever they match.
+Each Hydra job evaluates, at one point (``site.<param> = sweep.value``), with the evaluation
+protocol (``eval.n_sims`` x ``eval.ticks``, common random numbers: every row sees the same
+sites):
+
+* every policy of ``sweep.policies`` (baselines, and the default-site learners);
+* the point's own searches (``sweep.searches``, unless ``sweep.search=false``: the direct
+  policy search, MODEL §3.4, with
+  policy classes that read the charger's remaining time), each started from the best start
+  of its class among the rule, the heuristic and every saved policy (``sweep.search_seeded``)
+  and cached under ``sweep.search_dir/<point>/<key>`` by its training settings and start;
+* the rollout planner (MODEL §3.6) with the heuristic as base (row ``planner``), and one
+  step of policy improvement over each policy of ``sweep.improve`` (``best_learned``: the
+  best learned policy of the point) (rows ``planner_<name>``): how far each is from the
+  best its site allows;
+* ``best_known``: of all the rows above, the best on the point's *pick set* (the searches'
+  selection seed ``train.eval_seed`` with ``sweep.pick_sims`` x ``sweep.pick_ticks``, never
+  the evaluation's sites): fewer failed simulations first, then more trips. Every row
+  reports its share of ``best_known``'s gain over the rule; the JSON's
+  ``best_known.from`` names the row it is.
 
 The point's file ``results/sweeps/<name>/<param>=<value>.json`` is written atomically and
-records a key of everything it depends on (the site, the evaluation settings, each policy's
-identity: a baseline's parameters, a saved policy's file hash, the search's settings). A
-rerun skips a point whose key matches and recomputes one whose settings or policies changed;
-a point that fails writes an ``.error`` file beside it and does not stop the other points.
-The saved policies must exist (``make policies`` trains what is missing); a job trains only
-its point's search.
+records a key of everything it depends on (the site, the evaluation and pick settings, each
+policy's identity: a baseline's parameters, a saved policy's file hash, the searches' and
+the planner's settings). A rerun skips a point whose key matches and recomputes one whose
+settings or policies changed; a point that fails writes an ``.error`` file beside it and
+does not stop the other points. The saved policies must exist (``make policies`` trains
+what is missing); a job trains only its point's searches.
 """
 
 from __future__ import annotations
@@ -39,8 +43,10 @@ from typing import Any
 
 from ..agents import AGENTS, load_policy_file
 from ..agents.base import Policy
+from ..agents.baselines import HeuristicPolicy
+from ..agents.planner import PlannerPolicy
 from ..agents.policy_files import POLICY_FILE
-from ..agents.search import SearchPolicy, cell_centres, clone_policy
+from ..agents.search import SearchPolicy, cell_centres, clone_policy, threshold_start
 from ..config import Config, compose_config
 from ..evaluation import evaluate_policy, evaluate_with, gain_over
 from ..sim import SiteConfig
@@ -51,11 +57,9 @@ from ..utils.runinfo import file_sha256, read_json, run_info, to_jsonable, write
 from .table import reusable
 
 POINT_FIELDS = ("param", "value", "policy", "trips_mean", "trips_std", "queue_mean",
-                "failure_rate", "gain_pct", "gain_ci95", "share_of_optimum_pct")
-OPTIMUM = "optimum"  # the row of the point's own direct policy search
-# the point's search among the candidates for that row (not "search": that name is the
-# default-site search policy of sweep.policies)
-POINT_SEARCH = "point_search"
+                "failure_rate", "gain_pct", "gain_ci95", "share_of_best_known_pct")
+BEST_KNOWN = "best_known"  # the row of the best policy known at the point
+PLANNER = "planner"  # the rollout planner over the heuristic
 
 
 def digest(obj: Any) -> str:
@@ -76,47 +80,65 @@ def policy_identity(cfg: Config, name: str) -> str:
     return f"{name}:{file_sha256(path)[:16]}"
 
 
-def search_config(cfg: Config, site: SiteConfig) -> Config:
-    """The training config of the point's search (``sweep.search_overrides`` on the search
+def search_config(cfg: Config, site: SiteConfig, overrides: list[str]) -> Config:
+    """The training config of one of the point's searches (its overrides on the search
     defaults, the point's site)."""
-    run_cfg = compose_config(["agent=search", "train.threads=1", *cfg.sweep.search_overrides,
+    run_cfg = compose_config(["agent=search", "train.threads=1", *overrides,
                               "train.progress=false", "train.tensorboard=false"])
     run_cfg.site = site
     return run_cfg
 
 
-def on_pick_set(cfg: Config, run_cfg: Config, pol: Policy) -> tuple[float, float]:
-    """``(failure rate, -mean trips)`` of a policy on the point's pick set: the search's
+def planner_config(cfg: Config) -> Any:
+    """The planner's settings (``agent=planner`` with ``sweep.planner_overrides``)."""
+    return compose_config(["agent=planner", *cfg.sweep.planner_overrides]).agent
+
+
+def make_planner(cfg: Config, base: Policy) -> PlannerPolicy:
+    return PlannerPolicy.from_config(planner_config(cfg), base)
+
+
+def on_pick_set(cfg: Config, site: SiteConfig, pol: Policy) -> tuple[float, float]:
+    """``(failure rate, -mean trips)`` of a policy on the point's pick set: the searches'
     selection seed (``train.eval_seed``, apart from the evaluation's sites) with
     ``sweep.pick_sims`` x ``sweep.pick_ticks``; lower is better."""
-    res = evaluate_policy(pol, run_cfg.site, cfg.sweep.pick_sims, cfg.sweep.pick_ticks,
-                          run_cfg.train.eval_seed, cfg.eval.device)
+    seed = compose_config(["agent=search"]).train.eval_seed
+    res = evaluate_policy(pol, site, cfg.sweep.pick_sims, cfg.sweep.pick_ticks, seed,
+                          cfg.eval.device)
     return res["failure_rate"], -res["trips_mean"]
 
 
-def best_known(keys: dict[str, tuple[float, float]]) -> str:
-    """The name with the best :func:`on_pick_set` key; the point's own search
-    (:data:`POINT_SEARCH`) on a tie."""
-    return min(keys, key=lambda n: (keys[n], n != POINT_SEARCH))
+def class_start(run_cfg: Config, pol: Policy) -> SearchPolicy:
+    """What a search of ``run_cfg``'s class starts from when started from ``pol``: its action
+    table (table class), its thresholds (threshold class; the heuristic's for a policy
+    without any), a network cloned from it (mlp class)."""
+    a = run_cfg.agent
+    start = SearchPolicy(a.policy_class, a.hidden, a.depth, a.tc_bins)
+    if a.policy_class == "table":
+        start.charge.copy_(pol(cell_centres(a.tc_bins).to(_device(pol))).long().cpu())
+    elif a.policy_class == "threshold":
+        start.theta.copy_(threshold_start(pol))
+    else:
+        start.theta.copy_(clone_policy(pol.cpu(), start.sizes, run_cfg.seed, run_cfg.site))
+    return start
+
+
+def _device(pol: Policy):
+    for t in (*pol.buffers(), *pol.parameters()):
+        return t.device
+    return "cpu"
 
 
 def search_start(cfg: Config, run_cfg: Config, policies: dict[str, Policy]) -> str:
-    """The ``agent.init`` of the point's search: the ``partial``-state policy of the point
-    whose start of the search (for the table class: its action table, what the search can
-    represent of it) does best on the point's pick set, as a baseline's name or a
+    """The ``agent.init`` of a point's search: of the rule, the heuristic and the
+    ``partial``-state policies of the point, the one whose start of the search (what its
+    class can represent of it) does best on the point's pick set, as a baseline's name or a
     saved policy's path."""
-    a = run_cfg.agent
     best: tuple[tuple[float, float], str] | None = None
     for name, pol in policies.items():
         if pol.encoding != "partial":
             continue
-        start = SearchPolicy(a.policy_class, a.hidden, a.depth)  # what the search starts from
-        if a.policy_class == "table":
-            start.charge.copy_(pol(cell_centres().to(cfg.eval.device)).long().cpu())
-        else:
-            start.theta.copy_(clone_policy(pol.cpu(), start.sizes, run_cfg.seed, run_cfg.site))
-            pol.to(cfg.eval.device)
-        key = on_pick_set(cfg, run_cfg, start)
+        key = on_pick_set(cfg, run_cfg.site, class_start(run_cfg, pol))
         if best is None or key < best[0]:
             best = (key, name)
     if best is None:
@@ -128,32 +150,32 @@ def search_start(cfg: Config, run_cfg: Config, policies: dict[str, Policy]) -> s
 
 
 def point_search(cfg: Config, run_cfg: Config, label: str) -> tuple[Policy, dict[str, Any]]:
-    """The point's search policy (trained with ``run_cfg``, the point's
-    :func:`search_config`, or reused when its settings and start match) and its summary."""
+    """A point's search policy (trained with ``run_cfg``, or reused when its settings and
+    start match) and its summary."""
     init = Path(run_cfg.agent.init)
     init = init / POLICY_FILE if init.is_dir() else init
     start = file_sha256(init) if init.is_file() else None
     out = Path(cfg.sweep.search_dir) / label / digest([training_fingerprint(run_cfg), start])
     run_cfg.train.out_dir = str(out)
     if not reusable(out, run_cfg):
-        print(f"[sweep] {label}: searching the point's optimum -> {out}", flush=True)
+        print(f"[sweep] {label}: searching -> {out}", flush=True)
         Trainer(run_cfg, out / "run").run()
     else:
         print(f"[sweep] {label}: reusing the search in {out}", flush=True)
     return load_policy_file(out), read_json(out / "train_summary.json")
 
 
-def point_key(cfg: Config, site: SiteConfig, search_cfg: Config | None) -> str:
+def point_key(cfg: Config, site: SiteConfig, search_cfgs: dict[str, Config]) -> str:
     """Everything a point's result depends on, hashed (the sweep cache's key)."""
-    e = cfg.eval
+    e, s = cfg.eval, cfg.sweep
     parts: dict[str, Any] = {
         "site": site, "eval": {"n_sims": e.n_sims, "ticks": e.ticks, "seed": e.seed},
-        "policies": [policy_identity(cfg, n) for n in cfg.sweep.policies]}
-    if search_cfg is not None:
-        parts["search"] = training_fingerprint(search_cfg)
-        parts["search_seeded"] = cfg.sweep.search_seeded
-        parts["pick"] = [cfg.sweep.pick_sims, cfg.sweep.pick_ticks]
-        parts["optimum"] = "best of the point's search and the policies on the pick set"
+        "policies": [policy_identity(cfg, n) for n in s.policies],
+        "searches": {k: training_fingerprint(v) for k, v in search_cfgs.items()},
+        "search_seeded": s.search_seeded, "pick": [s.pick_sims, s.pick_ticks],
+        "planner": asdict(planner_config(cfg)) if s.planner else None,
+        "improve": list(s.improve),
+        "best_known": "best of every row on the pick set (failures, then trips)"}
     return digest(parts)
 
 
@@ -166,8 +188,14 @@ def point_path(cfg: Config) -> Path:
     return Path(cfg.sweep.out) / cfg.sweep.name / f"{cfg.sweep.param}={v}.json"
 
 
+def best_of(keys: dict[str, tuple[float, float]]) -> str:
+    """The name with the best pick-set key (fewer failures, then more trips); on a tie the
+    first in order (policies before searches before planners)."""
+    return min(keys, key=lambda n: keys[n])
+
+
 def run_point(cfg: Config) -> list[dict[str, Any]] | None:
-    """Evaluate all policies at this job's point; returns the rows (None if already done)."""
+    """Evaluate every row at this job's point; returns the rows (None if already done)."""
     path = point_path(cfg)
     param = cfg.sweep.param
     value = point_value(param, cfg.sweep.value)
@@ -176,8 +204,9 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
         raise ConfigError(f"site={cfg.site.name!r} is a site distribution: a sweep varies "
                           f"{param} of one site; run it on a single site (e.g. site=default)")
     site = replace(cfg.site, **{param: value}, name=label).validate()
-    search_cfg = search_config(cfg, site) if cfg.sweep.search else None
-    key = point_key(cfg, site, search_cfg)
+    search_cfgs = ({k: search_config(cfg, site, o) for k, o in cfg.sweep.searches.items()}
+                   if cfg.sweep.search else {})
+    key = point_key(cfg, site, search_cfgs)
     if path.exists():
         try:
             old = read_json(path).get("key")
@@ -189,25 +218,36 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
         print(f"[sweep] {path} was computed with other settings or policies: recomputing")
     e = cfg.eval
     policies = load_policies(cfg, cfg.sweep.policies)
-    search_summary = None
-    optimum_from = None
-    if search_cfg is not None:
+    searches, summaries = {}, {}
+    for name, run_cfg in search_cfgs.items():
         if cfg.sweep.search_seeded and not any(o.split("=", 1)[0].lstrip("+~") == "agent.init"
-                                               for o in cfg.sweep.search_overrides):
-            search_cfg.agent.init = search_start(cfg, search_cfg, policies)
-            print(f"[sweep] {label}: the search starts from {search_cfg.agent.init}",
-                  flush=True)
-        found, search_summary = point_search(cfg, search_cfg, label)
-        # the optimum: what the search found, unless a policy it competes with does better
-        # on the pick set (never on the evaluation's sites)
-        keys = {name: on_pick_set(cfg, search_cfg, pol)
-                for name, pol in {POINT_SEARCH: found, **policies}.items()}
-        optimum_from = best_known(keys)
-        policies[OPTIMUM] = found if optimum_from == POINT_SEARCH else policies[optimum_from]
-        print(f"[sweep] {label}: the optimum is {optimum_from}'s policy "
-              f"({-keys[optimum_from][1]:.1f} trips on the pick set, the search's "
-              f"{-keys[POINT_SEARCH][1]:.1f})", flush=True)
-    results = {name: evaluate_with(pol, site, e, name=name) for name, pol in policies.items()}
+                                               for o in cfg.sweep.searches[name]):
+            run_cfg.agent.init = search_start(cfg, run_cfg, policies)
+            print(f"[sweep] {label} {name}: starts from {run_cfg.agent.init}", flush=True)
+        searches[name], summaries[name] = point_search(cfg, run_cfg, f"{label}/{name}")
+        summaries[name]["init"] = run_cfg.agent.init
+    candidates: dict[str, Policy] = {**policies, **searches}
+    keys = {name: on_pick_set(cfg, site, pol) for name, pol in candidates.items()}
+    if cfg.sweep.planner:
+        candidates[PLANNER] = make_planner(cfg, HeuristicPolicy())
+        keys[PLANNER] = on_pick_set(cfg, site, candidates[PLANNER])
+        for name in cfg.sweep.improve:
+            if name == "best_learned":
+                learned = [n for n in policies  # (the searches are not learners)
+                           if n not in AGENTS and not n.startswith("search")]
+                if not learned:
+                    continue
+                name = best_of({n: keys[n] for n in learned})
+            if name == "heuristic":
+                continue  # that is the planner row itself
+            row = f"{PLANNER}_{name}"
+            candidates[row] = make_planner(cfg, policies[name])
+            keys[row] = on_pick_set(cfg, site, candidates[row])
+    best = best_of(keys)
+    print(f"[sweep] {label}: best known is {best} ({-keys[best][1]:.1f} trips on the pick "
+          "set)", flush=True)
+    results = {name: evaluate_with(pol, site, e, name=name) for name, pol in candidates.items()}
+    results[BEST_KNOWN] = {**results[best], "policy": BEST_KNOWN}
     rule = results.get("rule")
     rows = []
     for name, res in results.items():
@@ -216,21 +256,23 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
                      **{k: res[k] for k in ("trips_mean", "trips_std", "queue_mean",
                                             "failure_rate")},
                      "gain_pct": g["gain_pct"], "gain_ci95": g["gain_ci95"]})
-    best = next((r["gain_pct"] for r in rows if r["policy"] == OPTIMUM), None)
-    for r in rows:  # share of the achievable gain: this policy's gain over the optimum's
-        ok = best is not None and r["gain_pct"] is not None and best > 0
-        r["share_of_optimum_pct"] = 100.0 * r["gain_pct"] / best if ok else None
+    top = next(r["gain_pct"] for r in rows if r["policy"] == BEST_KNOWN)
+    for r in rows:  # share of the achievable gain: this row's gain over best_known's
+        ok = top is not None and r["gain_pct"] is not None and top > 0
+        r["share_of_best_known_pct"] = 100.0 * r["gain_pct"] / top if ok else None
     write_json(path, {"rows": rows, "site": site, "key": key,
-                      "search": search_summary and {
-                          **{k: search_summary[k] for k in ("run_dir", "wall_s", "best")},
-                          "init": search_cfg.agent.init, "optimum_from": optimum_from},
+                      "best_known": {"from": best, "pick_set": {
+                          n: {"failure_rate": k[0], "trips_mean": -k[1]}
+                          for n, k in keys.items()}},
+                      "searches": {n: {**{k: s[k] for k in ("run_dir", "wall_s", "best")},
+                                       "init": s["init"]} for n, s in summaries.items()},
                       "meta": run_info(cfg, seed=e.seed)})
     err = path.with_suffix(".error")
     if err.exists():
         err.unlink()
     for r in rows:
         gain = f", gain {r['gain_pct']:+.2f} %" if r["gain_pct"] is not None else ""
-        share = (f", {r['share_of_optimum_pct']:.0f} % of the optimum's"
-                 if r["share_of_optimum_pct"] is not None else "")
+        share = (f", {r['share_of_best_known_pct']:.0f} % of the best known"
+                 if r["share_of_best_known_pct"] is not None else "")
         print(f"[sweep] {label} {r['policy']}: {r['trips_mean']:.1f} trips{gain}{share}")
     return rows

@@ -33,6 +33,6 @@ def summarize(name: str, out: Path, expect: list[str] | None = None) -> dict:
                "missing": missing}
     write_json(out / f"{name}.json", summary)
     fig = plot_sweep(rows, param, f"sweep {name}: learners of the default site, the "
-                                  "generalist, the point's optimum")
+                                  "generalist, the planner, the best known policy")
     save_figure(fig, out / f"{name}.png")
     return summary

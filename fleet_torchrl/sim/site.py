@@ -345,6 +345,17 @@ class Site:
             s.tick += 1
         return TickOutcome(arrived=arrived, queue=queue, failed=failed)
 
+    def reserve_floor(self, params: SiteParams) -> Tensor:
+        """Per site (``[B]`` float32), the soc below which a vehicle leaving ``D`` without a
+        charge might not come back: ``SoC_low`` plus one lap moving every tick
+        (``N_N * e_move``) plus waiting at ``D`` behind every other vehicle's full charge
+        (``(N_V - 1) * T_C * e_idle``). A policy-independent safety line: the rollout planner
+        never turns a charge into a pass below it."""
+        cfg = self.cfg
+        lap = cfg.soc_low + self.n_nodes * cfg.e_move
+        wait = (params.n_vehicles - 1).clamp(min=0) * params.t_c * cfg.e_idle
+        return (lap + wait).to(torch.float32)
+
     @staticmethod
     def decide(s: SiteState, mask: Tensor, charge: Tensor) -> None:
         """Record the decision (``charge``: ``[B]`` bool/0-1) of the sites in ``mask``."""

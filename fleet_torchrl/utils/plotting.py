@@ -119,8 +119,8 @@ PARAM_LABELS = {"p_c": "closure probability p_c", "t_c": "charging ticks T_C",
 
 def plot_sweep(rows: list[dict], param: str, title: str):
     """Gain in trips over the rule (± 95% CI) per policy against the swept parameter; a point
-    whose policy failed in some simulation is circled in red, the point's own optimum (the
-    ``optimum`` row) is drawn as a black dashed line."""
+    whose policy failed in some simulation is circled in red, the best policy known at each
+    point (the ``best_known`` row) is drawn as a black dashed line."""
     fig, ax = plt.subplots(figsize=(5.6, 3.6))
     policies = list(dict.fromkeys(r["policy"] for r in rows))
     failed_label = "fails in some simulations"
@@ -130,7 +130,7 @@ def plot_sweep(rows: list[dict], param: str, title: str):
         if not pts:
             continue
         x, y, ci, fail = zip(*pts, strict=True)
-        style = dict(color="black", ls="--", lw=1.4) if name == "optimum" else dict(lw=1.2)
+        style = dict(color="black", ls="--", lw=1.4) if name == "best_known" else dict(lw=1.2)
         ax.errorbar(x, y, yerr=ci, marker="o", ms=3.5, capsize=2.5, label=name, **style)
         bad = [(xi, yi) for xi, yi, f in zip(x, y, fail, strict=True) if f > 0]
         if bad:

@@ -14,10 +14,21 @@ import pytest
 
 from fleet_torchrl import sweeps_summary
 
-TINY_SEARCH = "sweep.search_overrides=[" + ",".join(f"'{o}'" for o in (
-    "agent.generations=2", "agent.population=4", "agent.elite=1", "agent.sites=4",
-    "agent.ticks=300", "train.eval_sims=8", "train.eval_ticks=300")) + "]"
-TINY_PICK = ["sweep.pick_sims=8", "sweep.pick_ticks=300"]
+TINY = ("agent.generations=2", "agent.population=4", "agent.elite=1", "agent.sites=4",
+        "agent.ticks=300", "train.eval_sims=8", "train.eval_ticks=300")
+
+
+def _searches(**classes: list[str]) -> str:
+    """A ``sweep.searches={...}`` override of tiny searches (one per keyword)."""
+    body = ",".join(f"{name}:[" + ",".join(f"'{o}'" for o in (*extra, *TINY)) + "]"
+                    for name, extra in classes.items())
+    return "sweep.searches={" + body + "}"
+
+
+TINY_SEARCH = _searches(search_threshold=["agent.policy_class=threshold"],
+                        search_table=["agent.policy_class=table", "agent.tc_bins=4"])
+TINY_PICK = ["sweep.pick_sims=8", "sweep.pick_ticks=300",
+             "sweep.planner_overrides=['agent.rollouts=2','agent.horizon=20']"]
 
 
 def test_search_starts_from_the_points_best_partial_policy(saved_policies):
@@ -32,8 +43,9 @@ def test_search_starts_from_the_points_best_partial_policy(saved_policies):
 
     cfg = compose_config([f"table.policies_dir={saved_policies}", TINY_SEARCH, *TINY_PICK])
     site = replace(cfg.site, p_c=0.8)
-    run_cfg = search_config(cfg, site)
+    run_cfg = search_config(cfg, site, cfg.sweep.searches["search_table"])
     assert run_cfg.train.eval_sims == 8 and run_cfg.site.p_c == 0.8
+    assert run_cfg.agent.tc_bins == 4
     pols = load_policies(cfg, ["rule", "heuristic", "dqn_partial"])
     assert search_start(cfg, run_cfg, pols) == "heuristic"
     # a saved policy that acts as the heuristic beats the rule: it is named by its file
@@ -45,19 +57,23 @@ def test_search_starts_from_the_points_best_partial_policy(saved_policies):
     save_policy(saved_policies / "good" / "policy.pt", good, "search")
     pols = load_policies(cfg, ["rule", "good"])
     assert search_start(cfg, run_cfg, pols) == str(saved_policies / "good" / "policy.pt")
+    # the threshold class starts from the rule's or the heuristic's thresholds
+    thr_cfg = search_config(cfg, site, cfg.sweep.searches["search_threshold"])
+    pols = load_policies(cfg, ["rule", "heuristic", "dqn_partial"])
+    assert search_start(cfg, thr_cfg, pols) in ("heuristic",
+                                                 str(saved_policies / "dqn_partial" /
+                                                     "policy.pt"))
 
 
-def test_the_optimum_is_the_best_known_policy_on_the_selection_set():
-    from fleet_torchrl.experiments.sweeps import POINT_SEARCH, best_known
+def test_best_known_is_the_best_row_on_the_pick_set():
+    from fleet_torchrl.experiments.sweeps import best_of
 
-    # keys: (failure rate, -mean trips), lower is better; the point's search wins a tie
-    own = POINT_SEARCH
-    assert own != "search"  # "search" is the default-site search of sweep.policies
-    assert best_known({own: (0.0, -100.0), "dqn": (0.0, -101.0)}) == "dqn"
-    assert best_known({own: (0.0, -100.0), "dqn": (0.0, -100.0)}) == own
-    assert best_known({"dqn": (0.0, -100.0), own: (0.0, -100.0)}) == own
-    assert best_known({own: (0.0, -100.0), "dqn": (0.01, -120.0)}) == own
-    assert best_known({"heuristic": (0.0, -99.0), own: (0.0, -99.5)}) == own
+    # keys: (failure rate, -mean trips), lower is better; on a tie the first row
+    assert best_of({"planner": (0.0, -100.0), "dqn": (0.0, -101.0)}) == "dqn"
+    assert best_of({"dqn": (0.0, -100.0), "planner": (0.0, -100.0)}) == "dqn"
+    assert best_of({"planner": (0.0, -100.0), "dqn": (0.01, -120.0)}) == "planner"
+    assert best_of({"heuristic": (0.0, -99.0), "search_threshold": (0.0, -99.5)}) == \
+        "search_threshold"
 
 
 def test_a_sweep_on_a_site_distribution_is_refused():
@@ -86,32 +102,38 @@ def test_miniature_sweep_end_to_end(tmp_path, saved_policies):
     assert sweeps_summary.main(["pc", "--out", str(out), "--expect", "p_c=0.4", "p_c=0.8"]) == 0
     rows = list(csv.DictReader((out / "pc.csv").open()))
     assert set(rows[0]) == {"param", "value", "policy", "trips_mean", "trips_std", "queue_mean",
-                            "failure_rate", "gain_pct", "gain_ci95", "share_of_optimum_pct"}
-    assert len(rows) == 12 and {r["policy"] for r in rows} == {"rule", "heuristic", "tabular",
-                                                               "dqn_partial", "search",
-                                                               "optimum"}
+                            "failure_rate", "gain_pct", "gain_ci95", "share_of_best_known_pct"}
+    names = {"rule", "heuristic", "tabular", "dqn_partial", "search", "search_threshold",
+             "search_table", "planner", "best_known"}
+    assert {r["policy"] for r in rows} - names == {"planner_tabular"} or \
+        {r["policy"] for r in rows} - names == {"planner_dqn_partial"}
+    assert len(rows) == 2 * 10
     assert all(float(r["gain_pct"]) == 0.0 for r in rows if r["policy"] == "rule")
-    for r in rows:  # the share is the gain over the optimum's gain, where that is positive
+    for r in rows:  # the share is the gain over best_known's gain, where that is positive
         best = next(float(o["gain_pct"]) for o in rows
-                    if o["policy"] == "optimum" and o["value"] == r["value"])
+                    if o["policy"] == "best_known" and o["value"] == r["value"])
         if best > 0:
-            assert float(r["share_of_optimum_pct"]) == pytest.approx(
+            assert float(r["share_of_best_known_pct"]) == pytest.approx(
                 100 * float(r["gain_pct"]) / best, rel=1e-9)
         else:
-            assert r["share_of_optimum_pct"] == ""
-    # each point searched its own site: two cached searches, keyed by their settings
-    assert sorted(p.parent.parent.name for p in (tmp_path / "search").glob("*/*/policy.pt")) == [
-        "p_c=0.4", "p_c=0.8"]
+            assert r["share_of_best_known_pct"] == ""
+    # each point searched its own site, each class apart: cached, keyed by their settings
+    found = sorted(str(p.relative_to(tmp_path / "search").parent.parent)
+                   for p in (tmp_path / "search").glob("*/*/*/policy.pt"))
+    assert found == ["p_c=0.4/search_table", "p_c=0.4/search_threshold",
+                     "p_c=0.8/search_table", "p_c=0.8/search_threshold"], found
     assert (out / "pc.png").stat().st_size > 1000 and (out / "pc.json").exists()
     point = json.loads((out / "pc" / "p_c=0.8.json").read_text())
-    assert point["search"]["init"] in ("rule", "heuristic", str(root / "tabular" / "policy.pt"),
-                                       str(root / "dqn_partial" / "policy.pt"))
-    # the optimum row is the search's policy or the best policy on its selection set
-    src = point["search"]["optimum_from"]
-    assert src in ("point_search", "rule", "heuristic", "tabular", "dqn_partial", "search")
+    assert point["searches"]["search_table"]["init"] in (
+        "rule", "heuristic", str(root / "tabular" / "policy.pt"),
+        str(root / "dqn_partial" / "policy.pt"))
+    # best_known is the row that does best on the pick set, evaluated on the same sites
+    src = point["best_known"]["from"]
+    pick = point["best_known"]["pick_set"]
+    assert src in pick and all((pick[src]["failure_rate"], -pick[src]["trips_mean"])
+                               <= (p["failure_rate"], -p["trips_mean"]) for p in pick.values())
     trips = {r["policy"]: r["trips_mean"] for r in point["rows"]}
-    if src != "point_search":  # the row is that policy's, evaluated on the same sites
-        assert trips["optimum"] == trips[src]
+    assert trips["best_known"] == trips[src]
     # a rerun skips the finished points; a point that cannot run is reported, not fatal
     r2 = subprocess.run(cmd[:5] + ["sweep.value=0.8"] + cmd[6:], capture_output=True,
                         text=True, timeout=300)
@@ -120,7 +142,7 @@ def test_miniature_sweep_end_to_end(tmp_path, saved_policies):
     r4 = subprocess.run(cmd[:5] + ["sweep.value=0.8", "eval.n_sims=12"] + cmd[7:],
                         capture_output=True, text=True, timeout=300)
     assert "recomputing" in r4.stdout and "reusing the search" in r4.stdout, r4.stdout
-    assert all(r["policy"] == "optimum" or r["trips_mean"] > 0 for r in
+    assert all(r["trips_mean"] > 0 for r in
                json.loads((out / "pc" / "p_c=0.8.json").read_text())["rows"])
     bad = cmd[:5] + ["sweep.value=0.6"] + [c for c in cmd[6:] if "policies_dir" not in c] + [
         f"table.policies_dir={tmp_path / 'nowhere'}"]
@@ -138,14 +160,15 @@ def test_miniature_sweep_through_submitit(tmp_path):
     cmd = [sys.executable, "-m", "fleet_torchrl.sweeps", "-m", "+experiment=sweep_pc",
            "hydra/launcher=submitit_local", "hydra.launcher.timeout_min=5",
            "sweep.value=0.4,0.8", "eval.n_sims=8", "eval.ticks=300",
-           "sweep.policies=[rule,heuristic]", "sweep.search=false", f"sweep.out={out}",
+           "sweep.policies=[rule,heuristic]", "sweep.search=false", "sweep.planner=false",
+           f"sweep.out={out}",
            f"hydra.sweep.dir={tmp_path / 'multirun'}"]
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     assert "Submitit 'local' sweep output dir" in r.stdout + r.stderr
     assert sorted(p.name for p in (out / "pc").glob("*.json")) == ["p_c=0.4.json", "p_c=0.8.json"]
     rows = json.loads((out / "pc" / "p_c=0.8.json").read_text())["rows"]
-    assert {row["policy"] for row in rows} == {"rule", "heuristic"}
+    assert {row["policy"] for row in rows} == {"rule", "heuristic", "best_known"}
     assert list((tmp_path / "multirun" / ".submitit").iterdir())  # submitit's job folders
 
 
@@ -159,7 +182,8 @@ def test_miniature_sweep_through_ray(tmp_path):
            "hydra/launcher=ray", "+hydra.launcher.ray.init.num_cpus=2",
            "+hydra.launcher.ray.init.include_dashboard=false",
            "sweep.value=0.4,0.8", "eval.n_sims=8", "eval.ticks=300",
-           "sweep.policies=[rule,heuristic]", "sweep.search=false", f"sweep.out={out}",
+           "sweep.policies=[rule,heuristic]", "sweep.search=false", "sweep.planner=false",
+           f"sweep.out={out}",
            f"hydra.sweep.dir={tmp_path / 'multirun'}"]
     ray_tmp = tempfile.mkdtemp(prefix="ray", dir="/tmp")  # Ray's socket paths must be short
     env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0", "RAY_TMPDIR": ray_tmp}
@@ -171,4 +195,4 @@ def test_miniature_sweep_through_ray(tmp_path):
     assert "Ray Launcher is launching 2 jobs" in r.stdout + r.stderr
     assert sorted(p.name for p in (out / "pc").glob("*.json")) == ["p_c=0.4.json", "p_c=0.8.json"]
     rows = json.loads((out / "pc" / "p_c=0.4.json").read_text())["rows"]
-    assert {row["policy"] for row in rows} == {"rule", "heuristic"}
+    assert {row["policy"] for row in rows} == {"rule", "heuristic", "best_known"}
