@@ -122,10 +122,18 @@ class MapsConfig:
     out: str = "results/policy_maps"
     policies: list[str] = field(default_factory=lambda: [
         "rule", "heuristic", "tabular", "dqn_partial", "generalist", "search"])
+    # the rollout planner (agent=planner defaults) decides from the whole site: its maps are
+    # the share of charge decisions in each cell among the states it met on these sites
+    # (site presets), over planner_sims x planner_ticks of the evaluation protocol
+    planner_sites: list[str] = field(default_factory=lambda: ["default", "five_vehicles"])
+    planner_sims: int = 200
+    planner_ticks: int = 5000
 
     def validate(self, known: tuple[str, ...], path: str = "maps") -> MapsConfig:
         for i, name in enumerate(self.policies):
             check_choice(f"{path}.policies[{i}]", name, known)
+        check_range(f"{path}.planner_sims", self.planner_sims, 1, 100_000)
+        check_range(f"{path}.planner_ticks", self.planner_ticks, 1, 10**7)
         return self
 
 
