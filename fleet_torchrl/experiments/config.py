@@ -18,6 +18,10 @@ class TableConfig:
     jobs: int = 2  # training runs at once (each its own process)
     retrain: bool = False  # train again even when a saved policy exists
     evaluate: bool = True  # false: only make sure the policies exist (make policies)
+    # one step of policy improvement over every row (the rollout planner, agent=planner
+    # defaults, with the row's policy as base; learned rows: their lowest seed), on the
+    # first improve_sims sites of the evaluation; 0 = skip
+    improve_sims: int = 200
     # extra overrides of each training run (the learned policies and their budgets)
     # name -> overrides of its training run (learner, state, objective, budget); the YAML
     # default (conf/config.yaml) lists the thesis and the throughput runs
@@ -47,6 +51,7 @@ class TableConfig:
 
     def validate(self, path: str = "table") -> TableConfig:
         check_range(f"{path}.seeds", self.seeds, 1, 1000)
+        check_range(f"{path}.improve_sims", self.improve_sims, 0, 10**7)
         check_range(f"{path}.jobs", self.jobs, 1, 256)
         return self
 
