@@ -95,8 +95,8 @@ class SweepConfig:
         check_range(f"{path}.pick_ticks", self.pick_ticks, 1, 10**8)
         for label, overrides in self.searches.items():
             if not label.startswith("search"):
-                raise ConfigError(f"{path}.searches.{label}={list(overrides)} is invalid: a "
-                                  "search row's name is allowed only with the prefix 'search' (search_threshold)")
+                raise ConfigError(f"{path}.searches.{label}={list(overrides)} is invalid: "
+                                  "allowed row names start with 'search' (search_threshold)")
             check_overrides(f"{path}.searches.{label}", overrides, ("agent", "train", "seed"))
         check_overrides(f"{path}.planner_overrides", self.planner_overrides, ("agent",))
         for i, name in enumerate(self.policies):
