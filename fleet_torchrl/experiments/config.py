@@ -77,6 +77,19 @@ class SweepConfig:
         "search_table": ["agent.policy_class=table", "agent.tc_bins=4"],
     })
     search_seeded: bool = True  # each search starts from the best start of its class
+    # site specialists: recipes of table.train (row -> recipe name) trained on the point's
+    # own site, cached like the searches; specialist_seeds training seeds (seed, seed + 1,
+    # ...), more_seeds at the points of more_seeds_at ("<param>=<value>");
+    # specialist=false skips them
+    specialist: bool = True
+    specialists: dict[str, str] = field(default_factory=lambda: {
+        "specialist_dqn": "dqn_partial", "specialist_tabular": "tabular"})
+    specialist_seeds: int = 1
+    more_seeds: int = 3
+    more_seeds_at: list[str] = field(default_factory=lambda: ["n_vehicles=5", "t_c=50"])
+    # learned policies act with the policy-independent safety guard (agents/base.py:
+    # GuardedPolicy, charge below the site's reserve floor), reported as such
+    guard: bool = True
     # the rollout planner (agent=planner, overrides of its settings), base the heuristic,
     # and the one-step improvement of these policies ("best_learned": the best learned
     # policy of sweep.policies on the pick set): rows planner, planner_<name>
@@ -102,7 +115,13 @@ class SweepConfig:
         for i, name in enumerate(self.policies):
             check_choice(f"{path}.policies[{i}]", name, known)
         for i, name in enumerate(self.improve):
-            check_choice(f"{path}.improve[{i}]", name, (*self.policies, "best_learned"))
+            check_choice(f"{path}.improve[{i}]", name, (*self.policies, "best_learned", "best"))
+        for row, recipe in self.specialists.items():
+            if not row.startswith("specialist"):
+                raise ConfigError(f"{path}.specialists.{row}={recipe!r} is invalid: allowed "
+                                  "row names start with 'specialist' (specialist_dqn)")
+        check_range(f"{path}.specialist_seeds", self.specialist_seeds, 1, 100)
+        check_range(f"{path}.more_seeds", self.more_seeds, 1, 100)
         return self
 
 
