@@ -19,8 +19,7 @@ from typing import Any
 
 from omegaconf import MISSING, DictConfig, OmegaConf
 
-from .agents.dqn import NetworkConfig
-from .agents.registry import AGENTS, get_agent
+from .agents.config import AGENT_SCHEMAS, NetworkConfig
 from .env.config import MDPConfig, StateConfig
 from .evaluation.config import EvalConfig
 from .experiments.config import MapsConfig, ObjectiveConfig, SweepConfig, TableConfig
@@ -60,12 +59,14 @@ def register_configs() -> None:
     cs.store(group="eval", name="base_eval", node=EvalConfig)
     cs.store(group="network", name="base_network", node=NetworkConfig)
     cs.store(group="train", name="base_train", node=TrainConfig)
-    for name, spec in AGENTS.items():
-        cs.store(group="agent", name=f"base_{name}", node=spec.schema)
+    for name, schema in AGENT_SCHEMAS.items():
+        cs.store(group="agent", name=f"base_{name}", node=schema)
 
 
 def validate(cfg: Config) -> Config:
     """Check every range; raise :class:`ConfigError` naming the first bad field."""
+    from .agents.registry import AGENTS, get_agent  # the builders: torch, TorchRL
+
     cfg.site.validate()
     cfg.state.validate()
     cfg.mdp.validate()

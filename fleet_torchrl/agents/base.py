@@ -16,9 +16,7 @@ replay buffer, exploration schedule) and is driven by the one training loop of
 
 from __future__ import annotations
 
-import math
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
 from typing import Any, ClassVar
 
 from tensordict import TensorDictBase
@@ -28,32 +26,6 @@ from torch import Tensor, nn
 from ..sim.fused import KernelPolicy
 
 PASS, CHARGE = 0, 1
-
-
-@dataclass
-class AgentConfig:
-    """Base schema of the ``agent`` group; each agent extends it with its own fields."""
-
-    name: str = ""
-
-    def validate(self, cfg: Any = None, path: str = "agent") -> AgentConfig:
-        """Range checks of this agent's fields (``cfg``: the whole config, duck-typed, for
-        cross-checks such as the state the agent reads)."""
-        return self
-
-    def objective(self, mdp: Any) -> str:
-        """The objective this agent's policies are trained for (the table's column)."""
-        return mdp.reward
-
-    def run_suffix(self, mdp: Any) -> str:
-        """What a run's policy name adds to the agent's: the objective unless it is the
-        thesis's (``tabular_throughput``)."""
-        return "" if mdp.reward == "thesis" else f"_{mdp.reward}"
-
-    def training_rounds(self, train: Any) -> int:
-        """Rounds of the training loop: ``train.max_episodes`` episodes, one per site and round
-        (a learner with another budget overrides this)."""
-        return math.ceil(train.max_episodes / self.num_sites)  # type: ignore[attr-defined]
 
 
 class Policy(nn.Module):

@@ -32,7 +32,8 @@ from torch import Tensor
 
 from ..sim.fused import THRESHOLD, KernelPolicy
 from ..utils.checks import check_range
-from .base import AgentConfig, Policy
+from .base import Policy
+from .config import AgentConfig
 
 # the order of a kernel row (sim/kernel.py: THR_*)
 FIELDS = ("low", "free_upper", "margin", "others_below", "busy_tc", "busy_upper")
