@@ -2,12 +2,16 @@
 ConfigStore, validates, and turns a composed Hydra config into typed dataclasses.
 
 Each schema lives beside the code it configures (``sim/config.py``: ``site``; ``env/config.py``:
-``state``, ``mdp``; each agent's module: its ``agent`` schema, ``agents/dqn.py``: ``network``;
+``state``, ``mdp``; ``agents/config.py``: every ``agent`` schema and ``network``;
 ``training/config.py``: ``train``; ``evaluation/config.py``: ``eval``;
-``experiments/config.py``: ``table``, ``sweep``, ``maps``, ``objective``) and checks its own
-ranges; :func:`validate` runs them all and the cross-group checks. Every YAML file under
-``fleet_torchrl/conf/`` extends one schema (``defaults: [base_X, _self_]``), so a typo in a
-field name or a wrong type is rejected by Hydra when the config is composed.
+``experiments/config.py``: ``table``, ``sweep``, ``maps``, ``objective``, ``recipes``) and
+checks its own ranges; :func:`validate` runs them all and the cross-group checks. Every YAML
+file under ``fleet_torchrl/conf/`` extends one schema (``defaults: [/schema_X@_here_,
+_self_]``), so a typo in a field name or a wrong type is rejected by Hydra when the config is
+composed. The schemas are stored outside the groups (``schema_site``, ``schema_agent_dqn``,
+...): a group lists only real options, in ``--help`` and tab completion, and
+``agent=schema_agent_rule`` is no option at all. None of these modules imports torch:
+composing a config is what ``--help`` and every tab completion do.
 """
 
 from __future__ import annotations
@@ -48,19 +52,19 @@ class Config:
 
 
 def register_configs() -> None:
-    """Register the schemas in Hydra's ConfigStore (idempotent)."""
+    """Register the schemas in Hydra's ConfigStore (idempotent), outside every config group
+(``schema_<group>``, ``schema_agent_<name>``): the YAML options extend them, and neither
+``--help`` nor tab completion lists them as options."""
     from hydra.core.config_store import ConfigStore
 
     cs = ConfigStore.instance()
-    cs.store(name="base_config", node=Config)
-    cs.store(group="site", name="base_site", node=SiteConfig)
-    cs.store(group="state", name="base_state", node=StateConfig)
-    cs.store(group="mdp", name="base_mdp", node=MDPConfig)
-    cs.store(group="eval", name="base_eval", node=EvalConfig)
-    cs.store(group="network", name="base_network", node=NetworkConfig)
-    cs.store(group="train", name="base_train", node=TrainConfig)
+    cs.store(name="schema_config", node=Config)
+    for group, schema in (("site", SiteConfig), ("state", StateConfig), ("mdp", MDPConfig),
+                          ("eval", EvalConfig), ("network", NetworkConfig),
+                          ("train", TrainConfig)):
+        cs.store(name=f"schema_{group}", node=schema)
     for name, schema in AGENT_SCHEMAS.items():
-        cs.store(group="agent", name=f"base_{name}", node=schema)
+        cs.store(name=f"schema_agent_{name}", node=schema)
 
 
 def validate(cfg: Config) -> Config:
@@ -134,7 +138,7 @@ def to_config(cfg: DictConfig | Config) -> Config:
             raise ConfigError(bad[0])
     obj = OmegaConf.to_object(cfg) if isinstance(cfg, DictConfig) else cfg
     if not isinstance(obj, Config):  # composed without the schema (e.g. plain YAML in a test)
-        raise ConfigError("config was not composed from the 'base_config' schema")
+        raise ConfigError("config was not composed from the 'schema_config' schema")
     return validate(obj)
 
 
@@ -154,7 +158,6 @@ def one_line(exc: BaseException) -> str:
             options.append(ln)
         else:
             head.append(ln)
-    options = [o for o in options if not o.startswith("base_")]
     msg = " ".join(head).rstrip(":").replace(" ; ", "; ")
     if options:
         msg += f": {', '.join(options)}"

@@ -130,6 +130,29 @@ def test_hydra_level_errors_are_one_line_with_exit_code_2(override, expected):
     assert r.stderr.strip().splitlines() == [expected]
 
 
+@pytest.mark.parametrize("option", ["agent=schema_agent_rule", "agent=base_rule",
+                                    "site=schema_site", "network=schema_network"])
+def test_schemas_are_no_options(option):
+    """The schemas the YAML options extend are stored outside the groups: choosing one is an
+    unknown option, not a config with the schema's defaults."""
+    from hydra.errors import MissingConfigException
+
+    with pytest.raises(MissingConfigException, match="Could not find"):
+        compose_config([option])
+
+
+def test_help_lists_only_real_options():
+    from fleet_torchrl.config import register_configs
+
+    register_configs()
+    r = subprocess.run([sys.executable, "-m", "fleet_torchrl.evaluate", "--help"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    groups = r.stdout.split("== Config ==")[0]
+    assert "agent: dqn, heuristic, rule, search, tabular" in groups
+    assert "schema" not in groups and "base_" not in groups
+
+
 def test_the_table_schema_default_is_the_yaml_default():
     from fleet_torchrl.experiments.config import TableConfig
 
