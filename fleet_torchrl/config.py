@@ -16,7 +16,6 @@ composing a config is what ``--help`` and every tab completion do.
 
 from __future__ import annotations
 
-import sys
 from dataclasses import dataclass, field, fields, is_dataclass
 from pathlib import Path
 from typing import Any
@@ -26,12 +25,27 @@ from omegaconf import MISSING, DictConfig, OmegaConf
 from .agents.config import AGENT_SCHEMAS, NetworkConfig
 from .env.config import MDPConfig, StateConfig
 from .evaluation.config import EvalConfig
-from .experiments.config import MapsConfig, ObjectiveConfig, SweepConfig, TableConfig
+from .experiments.config import (
+    BenchConfig,
+    CompareConfig,
+    GridSummaryConfig,
+    MapsConfig,
+    ObjectiveConfig,
+    Recipe,
+    ReportConfig,
+    SweepConfig,
+    SweepSummaryConfig,
+    TableConfig,
+    validate_recipes,
+)
 from .sim.config import SiteConfig
 from .training.config import TrainConfig
 from .utils.checks import ConfigError, check_choice, check_range
 
 CONF_DIR = Path(__file__).resolve().parent / "conf"
+# the file tools' own configs: command name -> schema (conf/<name>.yaml extends schema_<name>)
+TOOL_SCHEMAS = {"compare": CompareConfig, "report": ReportConfig, "grid": GridSummaryConfig,
+                "sweeps_summary": SweepSummaryConfig}
 
 
 @dataclass
@@ -47,6 +61,8 @@ class Config:
     sweep: SweepConfig = field(default_factory=SweepConfig)
     maps: MapsConfig = field(default_factory=MapsConfig)
     objective: ObjectiveConfig = field(default_factory=ObjectiveConfig)
+    recipes: dict[str, Recipe] = field(default_factory=dict)  # conf/recipes/
+    bench: BenchConfig = field(default_factory=BenchConfig)
     seed: int = 0
     resume: bool = False
 
@@ -65,6 +81,9 @@ def register_configs() -> None:
         cs.store(name=f"schema_{group}", node=schema)
     for name, schema in AGENT_SCHEMAS.items():
         cs.store(name=f"schema_agent_{name}", node=schema)
+    # the primary configs of the commands that only read result files (conf/<command>.yaml)
+    for name, schema in TOOL_SCHEMAS.items():
+        cs.store(name=f"schema_{name}", node=schema)
 
 
 def validate(cfg: Config) -> Config:
@@ -87,11 +106,14 @@ def validate(cfg: Config) -> Config:
     cfg.train.validate()
     cfg.eval.validate()
     check_range("seed", cfg.seed, 0, 2**32 - 1)
-    known = (*(n for n, s in AGENTS.items() if not s.trainable), *cfg.table.train.keys())
-    cfg.table.validate()
+    baselines = tuple(n for n, s in AGENTS.items() if not s.trainable)
+    validate_recipes(cfg.recipes, baselines)
+    known = (*baselines, *cfg.recipes)
+    cfg.table.validate(tuple(cfg.recipes))
     cfg.sweep.validate(known)
     cfg.maps.validate(known)
     cfg.objective.validate()
+    cfg.bench.validate()
     return cfg
 
 
@@ -142,6 +164,18 @@ def to_config(cfg: DictConfig | Config) -> Config:
     return validate(obj)
 
 
+def to_tool_config(cfg: DictConfig, schema: type) -> Any:
+    """A file tool's composed config (``conf/compare.yaml``, ...) as its validated dataclass."""
+    bad = unknown_keys(cfg)
+    if bad:
+        raise ConfigError(bad[0])
+    obj = OmegaConf.to_object(cfg)
+    if not isinstance(obj, schema):
+        raise ConfigError(f"config was not composed from the 'schema_...' of {schema.__name__}")
+    validate_tool = getattr(obj, "validate", None)
+    return validate_tool() if validate_tool is not None else obj
+
+
 def one_line(exc: BaseException) -> str:
     """A Hydra or OmegaConf error message on one line (with its cause, the options a group
     offers, and none of Hydra's search-path listing)."""
@@ -166,27 +200,5 @@ def one_line(exc: BaseException) -> str:
     return msg or type(exc).__name__
 
 
-def check_command_line(argv: list[str] | None = None) -> None:
-    """Compose a command line's overrides before Hydra runs the command, so that what Hydra
-    would report in many lines (an unknown option ``site=nope``, a value of the wrong type
-    ``site.n_vehicles=abc``, an unknown key ``+site.pc=0.5``, a bad value) ends in one line
-    ``error: ...`` and exit code 2. Multiruns and Hydra's own flags are left to Hydra."""
-    from hydra.errors import HydraException
-    from omegaconf.errors import OmegaConfBaseException
-
-    args = sys.argv[1:] if argv is None else argv
-    if any(a.startswith("-") for a in args):  # -m, --help, --cfg, ...: Hydra's business
-        return
-    overrides = [a for a in args if not a.lstrip("+~").startswith(("hydra.", "hydra/"))]
-    try:
-        compose_config(overrides)
-    except ConfigError as e:
-        print(f"error: {e}", file=sys.stderr)
-        sys.exit(2)
-    except (HydraException, OmegaConfBaseException) as e:
-        print(f"error: {one_line(e)}", file=sys.stderr)
-        sys.exit(2)
-
-
-__all__ = ["CONF_DIR", "Config", "ConfigError", "check_command_line", "compose_config",
-           "register_configs", "to_config", "validate"]
+__all__ = ["CONF_DIR", "TOOL_SCHEMAS", "Config", "ConfigError", "compose_config",
+           "register_configs", "to_config", "to_tool_config", "validate"]

@@ -1,7 +1,8 @@
 """``make table``: the main comparison of MODEL §5 item 1 in one command.
 
-    python -m fleet_torchrl.table                       # defaults: 1000 sims x 10 000 ticks
-    python -m fleet_torchrl.table eval.n_sims=200 table.seeds=1 table.retrain=true
+    fleet-table                       # 1000 sims x 10 000 ticks (python -m fleet_torchrl.table)
+    fleet-table eval.n_sims=200 table.seeds=1 table.retrain=true
+    fleet-table table.only=[dqn_partial,search]
 
 The command line only; what it trains, evaluates and writes is
 :mod:`fleet_torchrl.experiments.table`.
@@ -11,28 +12,29 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from typing import TYPE_CHECKING
 
-import hydra
-from omegaconf import DictConfig
-
-from .config import check_command_line, register_configs, to_config
-from .experiments.table import run
+from .cli import hydra_command, validated
 from .utils.cli import user_errors
 
-register_configs()
+if TYPE_CHECKING:
+    from omegaconf import DictConfig
 
 
-@hydra.main(version_base="1.3", config_path="conf", config_name="config")
-def main(dcfg: DictConfig) -> None:
+def task(dcfg: DictConfig) -> None:
+    """Train what is missing, evaluate, write the table."""
+    from .experiments.table import run
+
     try:
         with user_errors():
-            run(to_config(dcfg))
+            run(validated(dcfg))
     except subprocess.CalledProcessError as e:
         print(f"error: training failed ({' '.join(e.cmd[2:4])}...); rerun `make table` to "
               "resume it from its checkpoint", file=sys.stderr)
         sys.exit(1)
 
 
+main = hydra_command(task)
+
 if __name__ == "__main__":
-    check_command_line()
     main()

@@ -153,10 +153,41 @@ def test_help_lists_only_real_options():
     assert "schema" not in groups and "base_" not in groups
 
 
-def test_the_table_schema_default_is_the_yaml_default():
+def test_the_recipes_live_in_one_place():
+    """The learned runs are the recipes group only: the table, its preview (make quick) and
+    the benchmark read them; no schema or experiment carries its own list."""
     from fleet_torchrl.experiments.config import TableConfig
 
-    assert TableConfig().train == compose_config([]).table.train
+    cfg = compose_config([])
+    assert list(cfg.recipes) == ["tabular", "dqn_partial", "dqn_all", "tabular_throughput",
+                                 "dqn_partial_throughput", "generalist", "search", "search_mlp"]
+    assert not hasattr(TableConfig(), "train")
+    quick = compose_config(["+experiment=quick"])
+    assert quick.recipes == cfg.recipes and quick.table.preview and not cfg.table.preview
+    for name in ("tabular", "dqn_partial", "search_mlp"):  # overrides mentioned in the docs
+        assert cfg.recipes[name].overrides[0].startswith("agent=")
+    text = (CONF_DIR / "experiment" / "quick.yaml").read_text()
+    assert "agent=" not in text and "max_episodes" not in text
+
+
+def test_some_of_the_recipes():
+    cfg = compose_config(["table.only=[search,tabular]"])
+    assert cfg.table.names(cfg.recipes) == ["tabular", "search"]  # the recipes' order
+    assert compose_config([]).table.names(cfg.recipes) == list(cfg.recipes)
+
+
+@pytest.mark.parametrize("override, field", [
+    ("table.only=[nope]", "table.only[0]"),
+    ("table.only=[]", "table.only"),
+    ("recipes.tabular.overrides=[]", "recipes.tabular.overrides"),
+    ("recipes.tabular.overrides=['seed=3']", "recipes.tabular.overrides[0]"),
+    ("recipes.search.preview=['train.out_dir=x']", "recipes.search.preview[0]"),
+    ("recipes.search.preview=['hydra.run.dir=x']", "recipes.search.preview[0]"),
+])
+def test_bad_recipes_and_table_selections_name_the_field(override, field):
+    with pytest.raises(ConfigError) as e:
+        compose_config([override])
+    assert str(e.value).startswith(f"{field}=") and "allowed" in str(e.value)
 
 
 def test_run_names_tell_runs_apart():

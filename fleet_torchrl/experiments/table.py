@@ -1,7 +1,8 @@
 """``make table``: the main comparison of MODEL §5 item 1, learned rows over training seeds.
 
-1. For each learned run of ``table.train`` (a name and the overrides of its training: the
-   learner, the state, the objective ``mdp.reward`` and the budget) and each of the
+1. For each recipe (``conf/recipes/``: a name and the overrides of its training: the
+   learner, the state, the objective ``mdp.reward``, the site and the budget; ``table.only``
+   narrows them, ``table.preview`` appends each one's shorter budget) and each of the
    ``table.seeds`` training seeds ``seed, seed + 1, ...``: reuse
    ``results/policies/<name>/seed<s>/policy.pt`` if its ``train_summary.json`` records the
    same training configuration, else train it in a subprocess (``python -m
@@ -62,7 +63,7 @@ def training_seeds(cfg: Config) -> list[int]:
 def run_overrides(name: str, seed: int, cfg: Config) -> list[str]:
     """The overrides of training run ``name`` with ``seed`` (its policy goes to its seed dir)."""
     out_dir = seed_dir(cfg.table.policies_dir, name, seed)
-    return [*cfg.table.train[name], f"train.out_dir={out_dir}",
+    return [*cfg.recipes[name].training_overrides(cfg.table.preview), f"train.out_dir={out_dir}",
             f"train.device={cfg.train.device}", f"seed={seed}"]
 
 
@@ -124,7 +125,8 @@ def ensure_policies(cfg: Config) -> dict[tuple[str, int], float | None]:
     """Train what is missing (``table.jobs`` at once); seconds per (name, seed): the training
     time each policy's summary records, for a reused one too (a run just trained without a
     summary falls back to its process's wall time; None if neither is known)."""
-    todo = [(name, seed) for name in cfg.table.train for seed in training_seeds(cfg)]
+    todo = [(name, seed) for name in cfg.table.names(cfg.recipes)
+            for seed in training_seeds(cfg)]
     plans = {job: plan_training(*job, cfg) for job in todo}
     runs = [job for job in todo if plans[job] is not None]
     with ThreadPoolExecutor(max_workers=cfg.table.jobs) as pool:
@@ -147,7 +149,7 @@ def recorded_train_time(name: str, seed: int, cfg: Config) -> float | None:
 
 
 def objective_of(name: str, cfg: Config) -> str:
-    run_cfg = compose_config(list(cfg.table.train[name]))
+    run_cfg = compose_config(cfg.recipes[name].training_overrides(cfg.table.preview))
     return run_cfg.agent.objective(run_cfg.mdp)
 
 
@@ -207,7 +209,7 @@ def rows_markdown(rows: list[dict[str, Any]], cfg: Config) -> str:
 def learning_curves(cfg: Config) -> dict[str, dict[int, list[tuple[float, float]]]]:
     """(training seconds, evaluation gain %) of every evaluation of every saved run."""
     curves: dict[str, dict[int, list[tuple[float, float]]]] = {}
-    for name in cfg.table.train:
+    for name in cfg.table.names(cfg.recipes):
         for seed in training_seeds(cfg):
             path = seed_dir(cfg.table.policies_dir, name, seed) / "train_summary.json"
             if path.is_file():
@@ -237,7 +239,7 @@ def run(cfg: Config) -> list[dict[str, Any]]:
     rule, heur = base["rule"], base["heuristic"]
     rows = [baseline_row(name, res, rule, heur) for name, res in base.items()]
     gains = {name: gain_over(res, rule)["per_sim_gain_pct"] for name, res in base.items()}
-    for name in cfg.table.train:
+    for name in cfg.table.names(cfg.recipes):
         per_seed = {}
         for seed in training_seeds(cfg):
             pol = load_policy_file(seed_dir(cfg.table.policies_dir, name, seed), e.device)

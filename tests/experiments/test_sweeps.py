@@ -71,7 +71,7 @@ def test_a_sweep_on_a_site_distribution_is_refused():
 
 
 @pytest.mark.slow
-def test_miniature_sweep_end_to_end(tmp_path, saved_policies):
+def test_miniature_sweep_end_to_end(tmp_path, saved_policies, command):
     root = saved_policies
     out = tmp_path / "sweeps"
     cmd = [sys.executable, "-m", "fleet_torchrl.sweeps", "-m", "+experiment=sweep_pc",
@@ -83,7 +83,8 @@ def test_miniature_sweep_end_to_end(tmp_path, saved_policies):
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     assert sorted(p.name for p in (out / "pc").glob("*.json")) == ["p_c=0.4.json", "p_c=0.8.json"]
-    assert sweeps_summary.main(["pc", "--out", str(out), "--expect", "p_c=0.4", "p_c=0.8"]) == 0
+    assert command(sweeps_summary.main, "name=pc", f"out={out}",
+                   "expect=['p_c=0.4','p_c=0.8']") == 0
     rows = list(csv.DictReader((out / "pc.csv").open()))
     assert set(rows[0]) == {"param", "value", "policy", "trips_mean", "trips_std", "queue_mean",
                             "failure_rate", "gain_pct", "gain_ci95", "share_of_optimum_pct"}
@@ -126,7 +127,7 @@ def test_miniature_sweep_end_to_end(tmp_path, saved_policies):
         f"table.policies_dir={tmp_path / 'nowhere'}"]
     r3 = subprocess.run(bad, capture_output=True, text=True, timeout=300)
     assert r3.returncode == 0 and (out / "pc" / "p_c=0.6.error").exists()
-    assert sweeps_summary.main(["pc", "--out", str(out)]) == 1  # failed point reported
+    assert command(sweeps_summary.main, "name=pc", f"out={out}") == 1  # failed, missing points
 
 
 @pytest.mark.slow

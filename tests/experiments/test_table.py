@@ -15,18 +15,20 @@ TINY_TRAIN = ["train.eval_every=1", "train.eval_sims=8", "train.eval_ticks=300",
 
 @pytest.mark.slow
 def test_table_end_to_end(tmp_path):
+    from fleet_torchrl.experiments.config import Recipe
     from fleet_torchrl.experiments.table import run
 
     cfg = compose_config(["eval.n_sims=24", "eval.ticks=600", "eval.progress=false",
                           "table.seeds=2", "table.jobs=2",
                           f"table.out={tmp_path}/table", f"table.policies_dir={tmp_path}/pol",
                           f"table.runs_dir={tmp_path}/runs"])
-    cfg.table.train = {
-        "tabular": ["agent=tabular", "agent.num_sites=8", "train.max_episodes=16", *TINY_TRAIN],
-        "dqn_partial_throughput": ["agent=dqn", "state=partial", "mdp.reward=throughput",
-                                   "agent.num_sites=2", "agent.steps_per_round=20",
-                                   "agent.updates_per_round=5", "train.max_episodes=4",
-                                   *TINY_TRAIN],
+    cfg.recipes = {
+        "tabular": Recipe(["agent=tabular", "agent.num_sites=8", "train.max_episodes=16",
+                           *TINY_TRAIN]),
+        "dqn_partial_throughput": Recipe(["agent=dqn", "state=partial", "mdp.reward=throughput",
+                                          "agent.num_sites=2", "agent.steps_per_round=20",
+                                          "agent.updates_per_round=5", "train.max_episodes=4",
+                                          *TINY_TRAIN]),
     }
     rows = run(cfg)
     assert [r["policy"] for r in rows] == ["rule", "heuristic", "tabular",
@@ -54,7 +56,7 @@ def test_table_end_to_end(tmp_path):
     assert pol.stat().st_mtime == mtime
     # changed settings: the saved policy is not reused, the run dir's checkpoint of the old
     # settings is set aside (nothing is deleted) and the policy is trained afresh
-    cfg.table.train = {"tabular": [*cfg.table.train["tabular"], "agent.k=50"]}
+    cfg.recipes = {"tabular": Recipe([*cfg.recipes["tabular"].overrides, "agent.k=50"])}
     cfg.table.seeds = 1
     run(cfg)
     assert pol.stat().st_mtime == mtime  # seed 1 is no longer asked for
