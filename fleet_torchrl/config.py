@@ -67,12 +67,50 @@ class Config:
     resume: bool = False
 
 
+USER_CONF = Path("conf")  # the users' own configs, relative to the working directory
+
+
+def user_options(root: Path = USER_CONF) -> dict[str, list[str]]:
+    """The options of the users' own config folder (``./conf``, ``hydra.searchpath`` in
+    ``conf/config.yaml``) by group, without those the package already has (which win)."""
+    out: dict[str, list[str]] = {}
+    if not root.is_dir():
+        return out
+    for path in sorted(root.rglob("*.yaml")):
+        group = path.parent.relative_to(root).as_posix()
+        if group == "." or group.split("/")[0] == "hydra":
+            continue
+        if not (CONF_DIR / group / path.name).is_file():
+            out.setdefault(group, []).append(path.stem)
+    return out
+
+
+def user_options_help() -> str:
+    """The ``--help`` lines of :func:`user_options` (Hydra's own listing ignores a primary
+    config's search path)."""
+    found = user_options()
+    if not found:
+        return ""
+    lines = "".join(f"{g}: {', '.join(o)}\n" for g, o in found.items())
+    return f"\nYour own, from ./conf (conf/README.md):\n{lines}"
+
+
 def register_configs() -> None:
     """Register the schemas in Hydra's ConfigStore (idempotent), outside every config group
 (``schema_<group>``, ``schema_agent_<name>``): the YAML options extend them, and neither
 ``--help`` nor tab completion lists them as options."""
+    import warnings
+
     from hydra.core.config_store import ConfigStore
 
+    # conf/config.yaml searches ./conf for the users' own configs; most working directories
+    # have none, which is no news worth a warning on every command
+    warnings.filterwarnings("ignore", message=r"provider=hydra\.searchpath in main, "
+                            r"path=conf is not available", category=UserWarning)
+    for name, resolver in (("fleet_user_options", user_options_help),
+                           ("fleet_script", lambda job: f"fleet-{job.replace('_', '-')}")):
+        if not OmegaConf.has_resolver(name):
+            OmegaConf.register_new_resolver(name, resolver)
     cs = ConfigStore.instance()
     cs.store(name="schema_config", node=Config)
     for group, schema in (("site", SiteConfig), ("state", StateConfig), ("mdp", MDPConfig),
