@@ -98,9 +98,9 @@ def test_typos_and_wrong_types_are_rejected_by_the_schema():
         compose_config(["site.n_vehicles=three"])
 
 
-def test_cli_reports_one_line_error_and_exit_code():
+def test_cli_reports_one_line_error_and_exit_code(tmp_path):
     r = subprocess.run([sys.executable, "-m", "fleet_torchrl.evaluate", "site.p_c=2"],
-                       capture_output=True, text=True, timeout=120)
+                       capture_output=True, text=True, timeout=120, cwd=tmp_path)
     assert r.returncode == 2
     assert r.stderr.strip().splitlines()[-1] == "error: site.p_c=2.0 is invalid: allowed [0.0, 1.0]"
 
@@ -123,9 +123,9 @@ def test_unknown_keys_added_with_plus_are_rejected():
                      "e_idle, e_move, leave_when_full, n_nodes, n_vehicles, name, p_c, ranges, "
                      "soc_low, t_c, xi)"),
 ])
-def test_hydra_level_errors_are_one_line_with_exit_code_2(override, expected):
+def test_hydra_level_errors_are_one_line_with_exit_code_2(override, expected, tmp_path):
     r = subprocess.run([sys.executable, "-m", "fleet_torchrl.evaluate", override],
-                       capture_output=True, text=True, timeout=120)
+                       capture_output=True, text=True, timeout=120, cwd=tmp_path)
     assert r.returncode == 2, r.stderr
     assert r.stderr.strip().splitlines() == [expected]
 
