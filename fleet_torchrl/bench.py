@@ -127,7 +127,7 @@ def task(dcfg: DictConfig) -> None:
     run(cfg)
 
 
-main = hydra_command(task, config_name="bench")
+main = hydra_command(task)
 
 if __name__ == "__main__":
     main()
