@@ -33,7 +33,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
-from .config import Config, one_line, register_configs, to_config
+from .config import Config, one_line, register_configs, to_config, without_hydra
 
 # launcher options (hydra/launcher=...) and the extra of pyproject.toml that provides them
 LAUNCHER_EXTRAS = {"ray": "ray", "ray_aws": "ray", "ray_cluster": "ray",
@@ -139,20 +139,14 @@ class ValidateFirst(_callback_base()):
     only be resolved inside the run (``${hydra:runtime.output_dir}``) is left to the task."""
 
     def on_run_start(self, config: Any, **kwargs: Any) -> None:
-        import copy
-
-        from omegaconf import open_dict, read_write
         from omegaconf.errors import OmegaConfBaseException
 
         from .utils.cli import user_errors
 
-        task_cfg = copy.deepcopy(config)
-        with read_write(task_cfg), open_dict(task_cfg):
-            del task_cfg["hydra"]
         _VALIDATED.clear()
         try:
             with user_errors():
-                _VALIDATED.append(to_config(task_cfg))
+                _VALIDATED.append(to_config(without_hydra(config)))
         except OmegaConfBaseException:  # resolvable in the run only: the task validates
             pass
 

@@ -202,6 +202,19 @@ def to_config(cfg: DictConfig | Config) -> Config:
     return validate(obj)
 
 
+def without_hydra(cfg: DictConfig) -> DictConfig:
+    """A copy of a composed config without its ``hydra`` node (what Hydra hands a task),
+    its schema kept."""
+    import copy
+
+    from omegaconf import open_dict, read_write
+
+    task_cfg = copy.deepcopy(cfg)
+    with read_write(task_cfg), open_dict(task_cfg):
+        del task_cfg["hydra"]
+    return task_cfg
+
+
 def to_tool_config(cfg: DictConfig, schema: type) -> Any:
     """A file tool's composed config (``conf/compare.yaml``, ...) as its validated dataclass."""
     bad = unknown_keys(cfg)

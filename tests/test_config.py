@@ -71,7 +71,6 @@ def test_site_variants():
     ("agent=dqn network.tau=1.5", "network.tau"),
     ("agent=dqn agent.n_steps=0", "agent.n_steps"),
     ("agent=dqn agent.reward_scale=0", "agent.reward_scale"),
-    ("table.jobs=0", "table.jobs"),
     ("eval.device=gpu0", "eval.device"),
     ("train.select=queue", "train.select"),
     ("agent=search agent.elite=64", "agent.elite"),

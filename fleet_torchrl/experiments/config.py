@@ -59,13 +59,14 @@ def validate_recipes(recipes: dict[str, Recipe], reserved: tuple[str, ...],
 @dataclass
 class TableConfig:
     """``make table``: train what is missing, then evaluate all policies (MODEL §5 item 1).
-    What it trains are the ``recipes`` (``conf/recipes/default.yaml``); ``only`` narrows them."""
+    What it trains are the ``recipes`` (``conf/recipes/default.yaml``); ``only`` narrows them.
+    The trainings are jobs of Hydra's launcher: ``hydra.launcher.n_jobs`` of them at once
+    (2 by default, ``conf/hydra/launcher/local.yaml``), or ``hydra/launcher=slurm``."""
 
     out: str = "results/table"
     policies_dir: str = "results/policies"
     runs_dir: str = "outputs/table"  # Hydra run folders of the trainings (logs, checkpoints)
     seeds: int = 3  # training seeds per learned run: seed, seed + 1, ...
-    jobs: int = 2  # training runs at once (each its own process)
     retrain: bool = False  # train again even when a saved policy exists
     evaluate: bool = True  # false: only make sure the policies exist (make policies)
     only: list[str] | None = None  # some of the recipes (e.g. [dqn_partial,search]); null: all
@@ -73,7 +74,6 @@ class TableConfig:
 
     def validate(self, recipes: tuple[str, ...] = (), path: str = "table") -> TableConfig:
         check_range(f"{path}.seeds", self.seeds, 1, 1000)
-        check_range(f"{path}.jobs", self.jobs, 1, 256)
         for i, name in enumerate(self.only or []):
             check_choice(f"{path}.only[{i}]", name, recipes)
         if self.only is not None and not self.only:

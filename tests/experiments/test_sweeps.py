@@ -83,6 +83,7 @@ def test_miniature_sweep_end_to_end(tmp_path, saved_policies, command):
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     assert sorted(p.name for p in (out / "pc").glob("*.json")) == ["p_c=0.4.json", "p_c=0.8.json"]
+    assert "[sweeps] 2 of 2 jobs done: sweep.value=" in r.stdout  # overall progress
     assert command(sweeps_summary.main, "name=pc", f"out={out}",
                    "expect=['p_c=0.4','p_c=0.8']") == 0
     rows = list(csv.DictReader((out / "pc.csv").open()))
