@@ -16,6 +16,7 @@ composing a config is what ``--help`` and every tab completion do.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field, fields, is_dataclass
 from pathlib import Path
 from typing import Any
@@ -108,7 +109,8 @@ def register_configs() -> None:
     warnings.filterwarnings("ignore", message=r"provider=hydra\.searchpath in main, "
                             r"path=conf is not available", category=UserWarning)
     for name, resolver in (("fleet_user_options", user_options_help),
-                           ("fleet_script", lambda job: f"fleet-{job.replace('_', '-')}")):
+                           ("fleet_script", lambda job: f"fleet-{job.replace('_', '-')}"),
+                           ("fleet_pid", os.getpid)):  # run folders: unique per process
         if not OmegaConf.has_resolver(name):
             OmegaConf.register_new_resolver(name, resolver)
     cs = ConfigStore.instance()

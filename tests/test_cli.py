@@ -140,3 +140,24 @@ def test_help_time_is_seconds_not_tens(tmp_path):
     r = subprocess.run([sys.executable, "-m", "fleet_torchrl.train", "--help"],
                        capture_output=True, text=True, timeout=120, cwd=tmp_path)
     assert r.returncode == 0 and time.perf_counter() - t0 < 5.0
+
+
+def test_run_folders_name_the_agent_state_and_site_and_never_collide(tmp_path):
+    """Two runs started together (in the same second) get folders of their own: the folder
+    names what ran and the process that ran it."""
+    import re
+
+    cmd = [sys.executable, "-m", "fleet_torchrl.evaluate", "agent=heuristic",
+           "site=five_vehicles", "eval.n_sims=2", "eval.ticks=20", "eval.progress=false"]
+    procs = [subprocess.Popen(cmd, cwd=tmp_path, stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True) for _ in range(2)]
+    for p in procs:
+        _, err = p.communicate(timeout=300)
+        assert p.returncode == 0, err[-2000:]
+    runs = sorted((tmp_path / "outputs" / "evaluate" / "heuristic_partial_five_vehicles"
+                   ).iterdir())
+    assert len(runs) == 2 and all((r / "eval.json").is_file() for r in runs)
+    pids = {str(p.pid) for p in procs}
+    for r in runs:
+        m = re.fullmatch(r"\d{4}-\d\d-\d\d_\d\d-\d\d-\d\d_(\d+)", r.name)
+        assert m and m.group(1) in pids, r.name

@@ -73,6 +73,8 @@ class Learner(nn.Module, ABC):
     steps_per_round: int | None = None
     reset_each_round: bool = True
     evaluate_start: bool = False  # True: the training loop also evaluates the start policy
+    # the TensorBoard tag of exploration(): epsilon for the Q-learners, the search's spread
+    exploration_tag: ClassVar[str] = "train/epsilon"
 
     def start_round(self, round_idx: int) -> None:  # noqa: B027 (optional hook)
         """Called before the first step of round ``round_idx`` (0-based)."""
@@ -96,7 +98,8 @@ class Learner(nn.Module, ABC):
 
     @abstractmethod
     def exploration(self) -> float:
-        """The current exploration rate (epsilon), for logging."""
+        """The current exploration (epsilon, or what :attr:`exploration_tag` names), for
+        logging."""
 
     def checkpoint_components(self) -> dict[str, Any]:
         """Objects with ``state_dict``/``load_state_dict`` that a checkpoint needs besides the

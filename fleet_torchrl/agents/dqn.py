@@ -238,11 +238,15 @@ class DQNLearner(Learner):
         self._steps.append(td.select(*self.KEYS).clone())
 
     def update(self) -> dict[str, float]:
-        """Store the round's transitions, then its gradient steps; logs the mean loss."""
+        """Store the round's transitions, then its gradient steps; logs the mean loss, the
+        learning rate, the mean gradient norm (before clipping) and the mean greedy Q-value
+        of the last batch (scaled reward units)."""
         if self._steps:
             self.store(torch.stack(self._steps, dim=1))
             self._steps = []
-        return {"loss/td": self.train_steps(self.updates_per_round),
+        loss, grad_norm, q_mean = self.train_steps(self.updates_per_round)
+        return {"loss/td": loss, "loss/grad_norm": grad_norm, "train/q_mean": q_mean,
+                "train/lr": float(self.optimizer.param_groups[0]["lr"]),
                 "train/buffer_size": len(self.buffer)}
 
     def store(self, batch: TensorDictBase) -> None:
@@ -252,19 +256,28 @@ class DQNLearner(Learner):
             trans.set(("next", "reward"), trans["next", "reward"] * self.reward_scale)
         self.buffer.extend(trans)
 
-    def train_steps(self, steps: int) -> float:
-        """``steps`` gradient steps; returns the mean loss (nan if the buffer is too small)."""
+    def train_steps(self, steps: int) -> tuple[float, float, float]:
+        """``steps`` gradient steps; returns the mean loss, the mean gradient norm before
+        clipping and the mean greedy Q of the last batch (all nan if the buffer is too
+        small). The norm is measured without touching the gradients, so logging it changes
+        no number of the run."""
+        nan = float("nan")
         if len(self.buffer) < self.buffer.batch_size or steps == 0:
-            return float("nan")
+            return nan, nan, nan
         total = 0.0
+        norms = torch.zeros((), device=self.optimizer.param_groups[0]["params"][0].device)
+        params = list(self.loss.value_network_params.values(True, True))
         for _ in range(steps):
             sample = self.buffer.sample()
             loss = self.loss(sample)["loss"]
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
             if self.grad_clip > 0:
-                torch.nn.utils.clip_grad_norm_(self.loss.value_network_params.values(True, True),
-                                               self.grad_clip)
+                norm = torch.nn.utils.clip_grad_norm_(params, self.grad_clip)
+            else:
+                norm = torch.nn.utils.get_total_norm(
+                    [p.grad for p in params if p.grad is not None])
+            norms += norm.detach()
             self.optimizer.step()
             if self.scheduler is not None:
                 self.scheduler.step()
@@ -272,7 +285,9 @@ class DQNLearner(Learner):
             if self.prioritized:
                 self.buffer.update_tensordict_priority(sample)
             total += float(loss.detach())
-        return total / steps
+        with torch.no_grad():
+            q_mean = float(self.qnet(sample["observation"]).max(-1).values.mean())
+        return total / steps, float(norms) / steps, q_mean
 
     def state_dict(self, *args, **kwargs):  # networks + target + eps + optimizer + schedule
         sd = super().state_dict(*args, **kwargs)

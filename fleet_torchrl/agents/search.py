@@ -217,6 +217,8 @@ class SearchLearner(Learner):
     def policy(self) -> SearchPolicy:
         return self.greedy
 
+    exploration_tag = "train/spread"  # not an epsilon: the distribution's spread
+
     def exploration(self) -> float:
         """The spread of the search distribution: mean Bernoulli variance ``p (1 - p)`` of the
         table, mean standard deviation of the network's weights."""

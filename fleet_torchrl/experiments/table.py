@@ -208,15 +208,17 @@ def rows_markdown(rows: list[dict[str, Any]], cfg: Config) -> str:
     return "\n".join(lines) + "\n"
 
 
-def learning_curves(cfg: Config) -> dict[str, dict[int, list[tuple[float, float]]]]:
-    """(training seconds, evaluation gain %) of every evaluation of every saved run."""
+def learning_curves(cfg: Config) -> dict[str, dict[int, list[tuple[float, float, float]]]]:
+    """(training seconds, evaluation gain %, failure rate) of every evaluation of every
+    saved run."""
     curves: dict[str, dict[int, list[tuple[float, float]]]] = {}
     for name in cfg.table.names(cfg.recipes):
         for seed in training_seeds(cfg):
             path = seed_dir(cfg.table.policies_dir, name, seed) / "train_summary.json"
             if path.is_file():
                 hist = read_json(path).get("history", [])
-                curves.setdefault(name, {})[seed] = [(h["wall_s"], h["gain_pct"]) for h in hist]
+                curves.setdefault(name, {})[seed] = [
+                    (h["wall_s"], h["gain_pct"], h.get("failure_rate", 0.0)) for h in hist]
     return curves
 
 

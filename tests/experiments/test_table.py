@@ -151,3 +151,27 @@ def test_a_single_seed_row_has_no_interval():
            "gain_per_seed": [1.0], "gain_vs_heuristic_pct": 0.0, "train_time_s": [10.0]}
     line = rows_markdown([row], compose_config([])).splitlines()[4]
     assert "nan" not in line and "| +1.00 | - | +1.00 |" in line
+
+
+def test_learning_curves_fit_their_data():
+    """A run that stays around -10 % is inside the axis (it used to stop at -5 %); an
+    evaluation with failures at -80 % does not stretch it, but is marked on its edge."""
+    import matplotlib.pyplot as plt
+
+    from fleet_torchrl.utils.plotting import plot_learning_curves
+
+    curves = {"tabular": {0: [(60, -12.0, 0.0), (120, -9.0, 0.0), (180, -8.5, 0.0)]},
+              "dqn": {0: [(60, -80.0, 0.4), (120, 1.0, 0.0), (180, 2.0, 0.0)],
+                      1: [(60, 0.5, 0.0), (120, 1.5, 0.0)]}}
+    fig = plot_learning_curves(curves)
+    ax = fig.axes[0]
+    lo, hi = ax.get_ylim()
+    assert -20 < lo < -12 and 2 < hi < 5
+    drawn = [y for line in ax.get_lines() for y in line.get_ydata()]
+    assert min(drawn) >= lo  # the failing evaluation sits on the edge, not below it
+    labels = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert "1 evaluations with failures, below the axis" in labels
+    plt.close(fig)
+    fig = plot_learning_curves({"dqn": {0: [(60, 1.0), (120, 3.0)]}})  # no failure rates
+    assert fig.axes[0].get_ylim()[0] <= -0.5  # the rule's 0 stays in view
+    plt.close(fig)
