@@ -18,7 +18,7 @@ TIMED  := $(PY) -m fleet_torchrl.utils.timing
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-14s %s\n", $$1, $$2}'
 
-install: $(STAMP)  ## create .venv and install the package with the EXTRAS groups (dev, cluster, gym; CI adds ray)
+install: $(STAMP)  ## create .venv and install the package, its console scripts fleet-<command> and the EXTRAS groups (dev, cluster, gym; CI adds ray)
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)

@@ -5,7 +5,7 @@
 (= ``python -m fleet_torchrl.evaluate ...``.) Prints the summary table and writes the result
 JSON (summary, per-simulation records, resolved config, seed, git commit, package versions)
 plus a per-simulation CSV beside it. Without ``eval.out`` both go to the Hydra run directory
-(``outputs/evaluate/<agent>-<state>-<site>/<time>_<pid>/eval.json``).
+(``outputs/evaluate/<agent>_<state>_<site>/<time>_<pid>/eval.json``).
 """
 
 from __future__ import annotations

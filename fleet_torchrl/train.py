@@ -5,7 +5,7 @@
     fleet-train agent=dqn state=all network.width=128 train.max_episodes=4000
 
 Logs to TensorBoard under the Hydra run directory
-(``outputs/train/<agent>-<state>-<site>/<time>_<pid>/tb``) and to its ``train.log``, keeps the
+(``outputs/train/<agent>_<state>_<site>/<time>_<pid>/tb``) and to its ``train.log``, keeps the
 best policy by periodic evaluation in ``<run dir>/policy.pt``, checkpoints to
 ``<run dir>/checkpoint.ckpt``, and at a successful end publishes the policy with its summary
 to ``results/policies/<name>/`` (or ``train.out_dir``). A killed run continues with

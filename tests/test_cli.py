@@ -161,3 +161,15 @@ def test_run_folders_name_the_agent_state_and_site_and_never_collide(tmp_path):
     for r in runs:
         m = re.fullmatch(r"\d{4}-\d\d-\d\d_\d\d-\d\d-\d\d_(\d+)", r.name)
         assert m and m.group(1) in pids, r.name
+
+
+def test_the_readme_and_the_makefile_name_every_command():
+    readme = (ROOT / "README.md").read_text()
+    commands = readme.split("## Commands")[1].split("\n## ")[0]
+    for name in SCRIPTS:
+        assert f"`{name}`" in commands, name
+    assert 'eval "$(.venv/bin/fleet-train -sc install=bash)"' in commands
+    quick = readme.split("## Quickstart")[1].split("\n## ")[0]
+    block = quick.split("```bash\n")[1].split("```")[0]
+    assert [ln.split("#")[0].strip() for ln in block.strip().splitlines()] == [
+        "make table", "make test"]  # the Quickstart stays two commands

@@ -1,6 +1,6 @@
 """Throughput benchmark: ``make bench`` (``python -m fleet_torchrl.bench --help``).
 
-Measures, for batch sizes ``B`` in {1, 64, 1024, 8192} (median of ``--repeats`` runs):
+Measures, for batch sizes ``B`` in {1, 64, 1024, 8192} (median of ``bench.repeats`` runs):
 
 * ``sim``: bare :meth:`Site.tick` calls (closures pre-drawn), ticks/s and site-ticks/s;
 * ``eval``: the evaluation loop with the rule policy deciding in the loop, site-ticks/s;

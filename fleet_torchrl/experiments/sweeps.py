@@ -2,7 +2,7 @@
 on changed sites, next to the best policy the point itself allows.
 
     make sweep-pc      # = python -m fleet_torchrl.sweeps -m +experiment=sweep_pc
-                       #   then python -m fleet_torchrl.sweeps_summary pc
+                       #   then fleet-sweeps-summary name=pc
 
 Each Hydra job evaluates every policy of ``sweep.policies`` at one point (``site.<param> =
 sweep.value``) with the evaluation protocol (``eval.n_sims`` x ``eval.ticks``, common random
