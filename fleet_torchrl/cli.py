@@ -141,14 +141,19 @@ class ValidateFirst(_callback_base()):
     def on_run_start(self, config: Any, **kwargs: Any) -> None:
         from omegaconf.errors import OmegaConfBaseException
 
-        from .utils.cli import user_errors
+        from .utils.cli import USER_ERRORS
 
         _VALIDATED.clear()
         try:
-            with user_errors():
-                _VALIDATED.append(to_config(without_hydra(config)))
+            cfg = to_config(without_hydra(config))
         except OmegaConfBaseException:  # resolvable in the run only: the task validates
-            pass
+            return
+        except USER_ERRORS as e:  # a bad value: one line, exit code 2, no run folder
+            print(f"error: {e}", file=sys.stderr)
+            sys.exit(2)
+        except Exception:  # noqa: BLE001 (the task meets it again, with its traceback)
+            return
+        _VALIDATED.append(cfg)
 
 
 def hydra_command(task: Callable[[Any], Any], config_name: str = "config"

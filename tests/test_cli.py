@@ -98,6 +98,17 @@ def test_a_run_validates_its_config_once(tmp_path, monkeypatch, command):
     assert json.loads(out.read_text())["n_sims"] == 4
 
 
+def test_a_value_only_the_run_can_resolve_is_validated_by_the_run(tmp_path):
+    """``${hydra:runtime.output_dir}`` exists only once the run folder does: such a config
+    is left to the task's validation, not refused before the run."""
+    r = subprocess.run([sys.executable, "-m", "fleet_torchrl.evaluate",
+                        "train.out_dir=${hydra:runtime.output_dir}/policy", "eval.n_sims=2",
+                        "eval.ticks=20", "eval.progress=false"],
+                       capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert list((tmp_path / "outputs" / "evaluate").glob("*/*/eval.json"))
+
+
 _BLOCKED = """
 import sys
 sys.modules[{plugin!r}] = None  # as if its extra were not installed
