@@ -1,5 +1,7 @@
 # fleet_torchrl make targets. Every target creates and uses the project's own .venv.
 # Hydra overrides go in ARGS, e.g.  make evaluate ARGS="agent=heuristic site=no_closure"
+# Each target runs a command that is also a console script after make install
+# (python -m fleet_torchrl.train = fleet-train, ...; README "Commands").
 PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
@@ -16,7 +18,7 @@ TIMED  := $(PY) -m fleet_torchrl.utils.timing
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-14s %s\n", $$1, $$2}'
 
-install: $(STAMP)  ## create .venv and install the package with the EXTRAS groups (dev, cluster, gym; CI adds ray)
+install: $(STAMP)  ## create .venv and install the package, its console scripts fleet-<command> and the EXTRAS groups (dev, cluster, gym; CI adds ray)
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -31,15 +33,15 @@ test-fast: $(STAMP)  ## run the tests not marked slow
 	$(PY) -m pytest -m "not slow" $(PYTEST_ARGS)
 
 lint: $(STAMP)  ## ruff
-	$(PY) -m ruff check fleet_torchrl tests
+	$(PY) -m ruff check fleet_torchrl tests hydra_plugins
 
 format: $(STAMP)  ## apply ruff's automatic lint fixes (import order, modern syntax)
-	$(PY) -m ruff check --fix fleet_torchrl tests
+	$(PY) -m ruff check --fix fleet_torchrl tests hydra_plugins
 
-table: $(STAMP)  ## main job: train the learned policies over 3 seeds (if missing), compare with rule and heuristic -> results/table
+table: $(STAMP)  ## main job: train the recipes over 3 seeds (if missing), compare with rule and heuristic -> results/table; some: ARGS="table.only=[dqn_partial,search]"
 	$(TIMED) table -- $(PY) -m fleet_torchrl.table $(ARGS)
 
-quick: $(STAMP)  ## a first look at the main comparison in minutes (1 seed, short runs) -> results/quick
+quick: $(STAMP)  ## a first look at the main comparison in minutes (1 seed, each recipe's preview budget) -> results/quick
 	$(TIMED) quick -- $(PY) -m fleet_torchrl.table +experiment=quick $(ARGS)
 
 policies: $(STAMP)  ## train the learned policies that are missing (no evaluation)
@@ -50,15 +52,15 @@ policy-maps: policies  ## action maps of rule, heuristic, tabular, DQN-partial, 
 
 sweep-pc: policies  ## generalisation sweep over p_c -> results/sweeps/pc.{csv,json,png}
 	$(TIMED) sweep-pc -- $(PY) -m fleet_torchrl.sweeps -m +experiment=sweep_pc $(ARGS)
-	$(PY) -m fleet_torchrl.sweeps_summary pc --expect p_c=0.0 p_c=0.2 p_c=0.4 p_c=0.6 p_c=0.8 p_c=0.9
+	$(PY) -m fleet_torchrl.sweeps_summary name=pc
 
 sweep-tc: policies  ## generalisation sweep over T_C -> results/sweeps/tc.{csv,json,png}
 	$(TIMED) sweep-tc -- $(PY) -m fleet_torchrl.sweeps -m +experiment=sweep_tc $(ARGS)
-	$(PY) -m fleet_torchrl.sweeps_summary tc --expect t_c=10 t_c=20 t_c=30 t_c=40 t_c=50
+	$(PY) -m fleet_torchrl.sweeps_summary name=tc
 
 sweep-nv: policies  ## generalisation sweep over N_V -> results/sweeps/nv.{csv,json,png}
 	$(TIMED) sweep-nv -- $(PY) -m fleet_torchrl.sweeps -m +experiment=sweep_nv $(ARGS)
-	$(PY) -m fleet_torchrl.sweeps_summary nv --expect n_vehicles=1 n_vehicles=2 n_vehicles=3 n_vehicles=4 n_vehicles=5
+	$(PY) -m fleet_torchrl.sweeps_summary name=nv
 
 sweeps: sweep-pc sweep-tc sweep-nv  ## all three generalisation sweeps
 
@@ -80,7 +82,7 @@ objective: $(STAMP)  ## how the MDP reward ranks policies vs their trips -> resu
 evaluate: $(STAMP)  ## evaluate a policy (MODEL §4); overrides in ARGS
 	$(PY) -m fleet_torchrl.evaluate $(ARGS)
 
-bench: $(STAMP)  ## simulator, evaluation, environment and training throughput (docs/BENCHMARKS.md)
+bench: $(STAMP)  ## simulator, evaluation, environment and the recipes' training throughput (docs/BENCHMARKS.md), e.g. ARGS="bench.repeats=3"
 	$(PY) -m fleet_torchrl.bench $(ARGS)
 
 tensorboard: $(STAMP)  ## TensorBoard on the training runs, e.g. ARGS="--port 6007 --bind_all"

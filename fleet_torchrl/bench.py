@@ -1,6 +1,7 @@
-"""Throughput benchmark: ``make bench`` (``python -m fleet_torchrl.bench --help``).
+"""Throughput benchmark: ``make bench`` (``fleet-bench``, ``python -m fleet_torchrl.bench``;
+settings ``bench.*``, e.g. ``fleet-bench bench.repeats=3 bench.training=false``).
 
-Measures, for batch sizes ``B`` in {1, 64, 1024, 8192} (median of ``--repeats`` runs):
+Measures, for batch sizes ``B`` in {1, 64, 1024, 8192} (median of ``bench.repeats`` runs):
 
 * ``sim``: bare :meth:`Site.tick` calls (closures pre-drawn), ticks/s and site-ticks/s;
 * ``eval``: the evaluation loop with the rule policy deciding in the loop, site-ticks/s;
@@ -10,44 +11,43 @@ Measures, for batch sizes ``B`` in {1, 64, 1024, 8192} (median of ``--repeats`` 
 sim/fused.py; numba on every CPU core, or CUDA); ``kernel``: one kernel call with the rule
 deciding inside it (site-ticks/s); and the wall time of the thesis protocol for one policy
 (1000 sims x 10 000 ticks): eager, fused and the numpy reference, as ratios to the
-reference, with the compile time apart.
-Results print as Markdown (paste into docs/BENCHMARKS.md) and, with ``--out``, as JSON.
+reference, with the compile time apart; and the training throughput of every recipe
+(``conf/recipes/``: what ``make table`` trains).
+Results print as Markdown (paste into docs/BENCHMARKS.md) and, with ``bench.out``, as JSON.
 """
 
 from __future__ import annotations
 
-import argparse
-import platform
+from typing import TYPE_CHECKING
 
-import torch
+from .cli import hydra_command, validated
+from .utils.cli import user_errors
 
-from .experiments.bench import (
-    bench_env,
-    bench_env_reference,
-    bench_eval,
-    bench_kernel,
-    bench_protocol,
-    bench_sim,
-    bench_training,
-)
-from .sim import fused
-from .utils.runinfo import package_versions, write_json
+if TYPE_CHECKING:
+    from omegaconf import DictConfig
+
+    from .config import Config
 
 
-def main(argv: list[str] | None = None) -> dict:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--batches", type=int, nargs="+", default=[1, 64, 1024, 8192])
-    p.add_argument("--site-ticks", type=float, default=4e6,
-                   help="site-ticks per measurement (ticks = site_ticks / B, 200..10000)")
-    p.add_argument("--repeats", type=int, default=5)
-    p.add_argument("--device", default="cpu")
-    p.add_argument("--env-steps", type=int, default=None,
-                   help="environment steps per measurement (default 200, 50 from B=1024)")
-    p.add_argument("--skip-protocol", action="store_true")
-    p.add_argument("--skip-training", action="store_true")
-    p.add_argument("--out", default=None, help="also write the figures as JSON")
-    a = p.parse_args(argv)
+def run(cfg: Config) -> dict:
+    """Every measurement of ``cfg.bench``; prints Markdown tables, returns the figures."""
+    import platform
 
+    import torch
+
+    from .experiments.bench import (
+        bench_env,
+        bench_env_reference,
+        bench_eval,
+        bench_kernel,
+        bench_protocol,
+        bench_sim,
+        bench_training,
+    )
+    from .sim import fused
+    from .utils.runinfo import package_versions, write_json
+
+    a = cfg.bench
     has_fused = fused.available(a.device)
     rows = []
     for b in a.batches:
@@ -83,7 +83,7 @@ def main(argv: list[str] | None = None) -> dict:
               f"{r['env_site_steps_per_s']:9.0f}{fast[1]} decisions/s", flush=True)
     result = {"machine": {"platform": platform.platform(), "cpus": torch.get_num_threads(),
                           "device": a.device}, "packages": package_versions(), "rows": rows}
-    if not a.skip_protocol:  # the protocol on the CPU
+    if a.protocol:  # the protocol on the CPU
         t = bench_protocol(max(1, a.repeats // 2 + 1))
         result["protocol_1000x10000_s"] = t
         ref = t["reference"]
@@ -109,8 +109,9 @@ def main(argv: list[str] | None = None) -> dict:
         for k in ("reference", "eager", "fused_stepwise", "fused", "fused_randomized"):
             print(f"| {k} | {t[k]:.3f} | {t[k] / t['reference']:.3f} |")
         print(f"| fused: compile once | {t['compile']:.2f} | |")
-    if not a.skip_training:
-        result["training"] = tr = bench_training(device=a.device)
+    if a.training:
+        recipes = {n: r.overrides for n, r in cfg.recipes.items()}
+        result["training"] = tr = bench_training(recipes, device=a.device)
         print("\n| learner (defaults) | sites | decisions/s | s per round |\n|---|---:|---:|---:|")
         for name, r in tr.items():
             print(f"| {name} | {r['sites']} | {r['decisions_per_s']:.0f} | {r['round_s']:.2f} |")
@@ -118,6 +119,15 @@ def main(argv: list[str] | None = None) -> dict:
         write_json(a.out, result)
     return result
 
+
+def task(dcfg: DictConfig) -> None:
+    """Measure and print (``bench.out``: also as JSON)."""
+    with user_errors():
+        cfg = validated(dcfg)
+    run(cfg)
+
+
+main = hydra_command(task)
 
 if __name__ == "__main__":
     main()

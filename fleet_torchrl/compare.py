@@ -1,6 +1,7 @@
 """Command line: paired comparison of two evaluation results.
 
-    python -m fleet_torchrl.compare RESULT.json BASELINE.json
+    fleet-compare result=RESULT.json baseline=BASELINE.json
+    (= python -m fleet_torchrl.compare result=... baseline=...)
 
 Prints the gain in trips of RESULT over BASELINE in percent of the baseline's mean, with the
 half-width of its 95% confidence interval from the paired per-simulation differences.
@@ -8,24 +9,29 @@ half-width of its 95% confidence interval from the paired per-simulation differe
 
 from __future__ import annotations
 
-import argparse
-import sys
+from typing import TYPE_CHECKING
 
-from .evaluation import compare
+from .cli import hydra_command
+from .config import to_tool_config
+from .experiments.config import CompareConfig
 from .utils.cli import user_errors
 
+if TYPE_CHECKING:
+    from omegaconf import DictConfig
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description="paired gain in trips of one result over another")
-    p.add_argument("result")
-    p.add_argument("baseline")
-    a = p.parse_args(argv)
+
+def task(dcfg: DictConfig) -> None:
+    """Print the paired gain of ``result`` over ``baseline``."""
+    from .evaluation import compare
+
     with user_errors():
-        g = compare(a.result, a.baseline)
+        c = to_tool_config(dcfg, CompareConfig)
+        g = compare(c.result, c.baseline)
     print(f"{g['policy']} vs {g['baseline']}: {g['gain_pct']:+.2f} % trips "
           f"(95% CI ± {g['gain_ci95']:.2f})")
-    return 0
 
+
+main = hydra_command(task, config_name="compare")
 
 if __name__ == "__main__":
-    sys.exit(main())
+    main()

@@ -2,33 +2,51 @@
 ConfigStore, validates, and turns a composed Hydra config into typed dataclasses.
 
 Each schema lives beside the code it configures (``sim/config.py``: ``site``; ``env/config.py``:
-``state``, ``mdp``; each agent's module: its ``agent`` schema, ``agents/dqn.py``: ``network``;
+``state``, ``mdp``; ``agents/config.py``: every ``agent`` schema and ``network``;
 ``training/config.py``: ``train``; ``evaluation/config.py``: ``eval``;
-``experiments/config.py``: ``table``, ``sweep``, ``maps``, ``objective``) and checks its own
-ranges; :func:`validate` runs them all and the cross-group checks. Every YAML file under
-``fleet_torchrl/conf/`` extends one schema (``defaults: [base_X, _self_]``), so a typo in a
-field name or a wrong type is rejected by Hydra when the config is composed.
+``experiments/config.py``: ``table``, ``sweep``, ``maps``, ``objective``, ``recipes``) and
+checks its own ranges; :func:`validate` runs them all and the cross-group checks. Every YAML
+file under ``fleet_torchrl/conf/`` extends one schema (``defaults: [/schema_X@_here_,
+_self_]``), so a typo in a field name or a wrong type is rejected by Hydra when the config is
+composed. The schemas are stored outside the groups (``schema_site``, ``schema_agent_dqn``,
+...): a group lists only real options, in ``--help`` and tab completion, and
+``agent=schema_agent_rule`` is no option at all. None of these modules imports torch:
+composing a config is what ``--help`` and every tab completion do.
 """
 
 from __future__ import annotations
 
-import sys
+import os
 from dataclasses import dataclass, field, fields, is_dataclass
 from pathlib import Path
 from typing import Any
 
 from omegaconf import MISSING, DictConfig, OmegaConf
 
-from .agents.dqn import NetworkConfig
-from .agents.registry import AGENTS, get_agent
+from .agents.config import AGENT_SCHEMAS, NetworkConfig
 from .env.config import MDPConfig, StateConfig
 from .evaluation.config import EvalConfig
-from .experiments.config import MapsConfig, ObjectiveConfig, SweepConfig, TableConfig
+from .experiments.config import (
+    BenchConfig,
+    CompareConfig,
+    GridSummaryConfig,
+    MapsConfig,
+    ObjectiveConfig,
+    Recipe,
+    ReportConfig,
+    SweepConfig,
+    SweepSummaryConfig,
+    TableConfig,
+    validate_recipes,
+)
 from .sim.config import SiteConfig
 from .training.config import TrainConfig
 from .utils.checks import ConfigError, check_choice, check_range
 
 CONF_DIR = Path(__file__).resolve().parent / "conf"
+# the file tools' own configs: command name -> schema (conf/<name>.yaml extends schema_<name>)
+TOOL_SCHEMAS = {"compare": CompareConfig, "report": ReportConfig, "grid": GridSummaryConfig,
+                "sweeps_summary": SweepSummaryConfig}
 
 
 @dataclass
@@ -44,28 +62,74 @@ class Config:
     sweep: SweepConfig = field(default_factory=SweepConfig)
     maps: MapsConfig = field(default_factory=MapsConfig)
     objective: ObjectiveConfig = field(default_factory=ObjectiveConfig)
+    recipes: dict[str, Recipe] = field(default_factory=dict)  # conf/recipes/
+    bench: BenchConfig = field(default_factory=BenchConfig)
     seed: int = 0
     resume: bool = False
 
 
+USER_CONF = Path("conf")  # the users' own configs, relative to the working directory
+
+
+def user_options(root: Path = USER_CONF) -> dict[str, list[str]]:
+    """The options of the users' own config folder (``./conf``, ``hydra.searchpath`` in
+    ``conf/config.yaml``) by group, without those the package already has (which win)."""
+    out: dict[str, list[str]] = {}
+    if not root.is_dir():
+        return out
+    for path in sorted(root.rglob("*.yaml")):
+        group = path.parent.relative_to(root).as_posix()
+        if group == "." or group.split("/")[0] == "hydra":
+            continue
+        if not (CONF_DIR / group / path.name).is_file():
+            out.setdefault(group, []).append(path.stem)
+    return out
+
+
+def user_options_help() -> str:
+    """The ``--help`` lines of :func:`user_options` (Hydra's own listing ignores a primary
+    config's search path)."""
+    found = user_options()
+    if not found:
+        return ""
+    lines = "".join(f"{g}: {', '.join(o)}\n" for g, o in found.items())
+    return f"\nYour own, from ./conf (conf/README.md):\n{lines}"
+
+
 def register_configs() -> None:
-    """Register the schemas in Hydra's ConfigStore (idempotent)."""
+    """Register the schemas in Hydra's ConfigStore (idempotent), outside every config group
+(``schema_<group>``, ``schema_agent_<name>``): the YAML options extend them, and neither
+``--help`` nor tab completion lists them as options."""
+    import warnings
+
     from hydra.core.config_store import ConfigStore
 
+    # conf/config.yaml searches ./conf for the users' own configs; most working directories
+    # have none, which is no news worth a warning on every command
+    warnings.filterwarnings("ignore", message=r"provider=hydra\.searchpath in main, "
+                            r"path=conf is not available", category=UserWarning)
+    for name, resolver in (("fleet_user_options", user_options_help),
+                           ("fleet_script", lambda job: f"fleet-{job.replace('_', '-')}"),
+                           ("fleet_pid", os.getpid)):  # run folders: unique per process
+        if not OmegaConf.has_resolver(name):
+            OmegaConf.register_new_resolver(name, resolver)
     cs = ConfigStore.instance()
-    cs.store(name="base_config", node=Config)
-    cs.store(group="site", name="base_site", node=SiteConfig)
-    cs.store(group="state", name="base_state", node=StateConfig)
-    cs.store(group="mdp", name="base_mdp", node=MDPConfig)
-    cs.store(group="eval", name="base_eval", node=EvalConfig)
-    cs.store(group="network", name="base_network", node=NetworkConfig)
-    cs.store(group="train", name="base_train", node=TrainConfig)
-    for name, spec in AGENTS.items():
-        cs.store(group="agent", name=f"base_{name}", node=spec.schema)
+    cs.store(name="schema_config", node=Config)
+    for group, schema in (("site", SiteConfig), ("state", StateConfig), ("mdp", MDPConfig),
+                          ("eval", EvalConfig), ("network", NetworkConfig),
+                          ("train", TrainConfig)):
+        cs.store(name=f"schema_{group}", node=schema)
+    for name, schema in AGENT_SCHEMAS.items():
+        cs.store(name=f"schema_agent_{name}", node=schema)
+    # the primary configs of the commands that only read result files (conf/<command>.yaml)
+    for name, schema in TOOL_SCHEMAS.items():
+        cs.store(name=f"schema_{name}", node=schema)
 
 
 def validate(cfg: Config) -> Config:
     """Check every range; raise :class:`ConfigError` naming the first bad field."""
+    from .agents.registry import AGENTS, get_agent  # the builders: torch, TorchRL
+
     cfg.site.validate()
     cfg.state.validate()
     cfg.mdp.validate()
@@ -82,13 +146,16 @@ def validate(cfg: Config) -> Config:
     cfg.train.validate()
     cfg.eval.validate()
     check_range("seed", cfg.seed, 0, 2**32 - 1)
-    known = (*(n for n, s in AGENTS.items() if not s.trainable), *cfg.table.train.keys())
-    cfg.table.validate()
+    baselines = tuple(n for n, s in AGENTS.items() if not s.trainable)
+    validate_recipes(cfg.recipes, baselines)
+    known = (*baselines, *cfg.recipes)
+    cfg.table.validate(tuple(cfg.recipes))
     cfg.sweep.validate(known)
     for row, recipe in cfg.sweep.specialists.items():
-        check_choice(f"sweep.specialists.{row}", recipe, tuple(cfg.table.train))
+        check_choice(f"sweep.specialists.{row}", recipe, tuple(cfg.recipes))
     cfg.maps.validate(known)
     cfg.objective.validate()
+    cfg.bench.validate()
     return cfg
 
 
@@ -135,8 +202,33 @@ def to_config(cfg: DictConfig | Config) -> Config:
             raise ConfigError(bad[0])
     obj = OmegaConf.to_object(cfg) if isinstance(cfg, DictConfig) else cfg
     if not isinstance(obj, Config):  # composed without the schema (e.g. plain YAML in a test)
-        raise ConfigError("config was not composed from the 'base_config' schema")
+        raise ConfigError("config was not composed from the 'schema_config' schema")
     return validate(obj)
+
+
+def without_hydra(cfg: DictConfig) -> DictConfig:
+    """A copy of a composed config without its ``hydra`` node (what Hydra hands a task),
+    its schema kept."""
+    import copy
+
+    from omegaconf import open_dict, read_write
+
+    task_cfg = copy.deepcopy(cfg)
+    with read_write(task_cfg), open_dict(task_cfg):
+        del task_cfg["hydra"]
+    return task_cfg
+
+
+def to_tool_config(cfg: DictConfig, schema: type) -> Any:
+    """A file tool's composed config (``conf/compare.yaml``, ...) as its validated dataclass."""
+    bad = unknown_keys(cfg)
+    if bad:
+        raise ConfigError(bad[0])
+    obj = OmegaConf.to_object(cfg)
+    if not isinstance(obj, schema):
+        raise ConfigError(f"config was not composed from the 'schema_...' of {schema.__name__}")
+    validate_tool = getattr(obj, "validate", None)
+    return validate_tool() if validate_tool is not None else obj
 
 
 def one_line(exc: BaseException) -> str:
@@ -155,7 +247,6 @@ def one_line(exc: BaseException) -> str:
             options.append(ln)
         else:
             head.append(ln)
-    options = [o for o in options if not o.startswith("base_")]
     msg = " ".join(head).rstrip(":").replace(" ; ", "; ")
     if options:
         msg += f": {', '.join(options)}"
@@ -164,27 +255,5 @@ def one_line(exc: BaseException) -> str:
     return msg or type(exc).__name__
 
 
-def check_command_line(argv: list[str] | None = None) -> None:
-    """Compose a command line's overrides before Hydra runs the command, so that what Hydra
-    would report in many lines (an unknown option ``site=nope``, a value of the wrong type
-    ``site.n_vehicles=abc``, an unknown key ``+site.pc=0.5``, a bad value) ends in one line
-    ``error: ...`` and exit code 2. Multiruns and Hydra's own flags are left to Hydra."""
-    from hydra.errors import HydraException
-    from omegaconf.errors import OmegaConfBaseException
-
-    args = sys.argv[1:] if argv is None else argv
-    if any(a.startswith("-") for a in args):  # -m, --help, --cfg, ...: Hydra's business
-        return
-    overrides = [a for a in args if not a.lstrip("+~").startswith(("hydra.", "hydra/"))]
-    try:
-        compose_config(overrides)
-    except ConfigError as e:
-        print(f"error: {e}", file=sys.stderr)
-        sys.exit(2)
-    except (HydraException, OmegaConfBaseException) as e:
-        print(f"error: {one_line(e)}", file=sys.stderr)
-        sys.exit(2)
-
-
-__all__ = ["CONF_DIR", "Config", "ConfigError", "check_command_line", "compose_config",
-           "register_configs", "to_config", "validate"]
+__all__ = ["CONF_DIR", "TOOL_SCHEMAS", "Config", "ConfigError", "compose_config",
+           "register_configs", "to_config", "to_tool_config", "validate"]

@@ -1,33 +1,36 @@
 """Command line: evaluate one policy with the protocol of MODEL §4.
 
-    python -m fleet_torchrl.evaluate agent=rule eval.n_sims=1000 eval.ticks=10000 eval.out=rule.json
+    fleet-evaluate agent=rule eval.n_sims=1000 eval.ticks=10000 eval.out=results/eval/rule.json
 
-Prints the summary table and writes the result JSON (summary, per-simulation records, resolved
-config, seed, git commit, package versions) plus a per-simulation CSV beside it. Without
-``eval.out`` both go to the Hydra run directory (``outputs/evaluate/<time>/eval.json``).
+(= ``python -m fleet_torchrl.evaluate ...``.) Prints the summary table and writes the result
+JSON (summary, per-simulation records, resolved config, seed, git commit, package versions)
+plus a per-simulation CSV beside it. Without ``eval.out`` both go to the Hydra run directory
+(``outputs/evaluate/<agent>_<state>_<site>/<time>_<pid>/eval.json``).
 """
 
 from __future__ import annotations
 
 import logging
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import hydra
-from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig
-
-from .config import Config, check_command_line, register_configs, to_config
-from .evaluation import evaluate_with, format_table, save_result
-from .evaluation.results import check_result_path
-from .store import make_policy
+from .cli import hydra_command, validated
 from .utils.cli import user_errors
-from .utils.runinfo import run_info
 
-register_configs()
+if TYPE_CHECKING:
+    from omegaconf import DictConfig
+
+    from .config import Config
+
 log = logging.getLogger("fleet_torchrl.evaluate")  # to stdout and the Hydra job's log file
 
 
 def run(cfg: Config, out: str | Path | None) -> dict:
+    from .evaluation import evaluate_with, format_table, save_result
+    from .evaluation.results import check_result_path
+    from .store import make_policy
+    from .utils.runinfo import run_info
+
     if out is not None:
         check_result_path(out)  # before the simulation, not after it
     policy = make_policy(cfg)
@@ -36,21 +39,24 @@ def run(cfg: Config, out: str | Path | None) -> dict:
     result["meta"] = run_info(cfg, seed=e.seed)
     log.info("\n" + format_table([result]))
     log.info(f"({e.n_sims} sims x {e.ticks} ticks on site '{cfg.site.name}', seed {e.seed}, "
-          f"{result['wall_time_s']:.2f} s)")
+             f"{result['wall_time_s']:.2f} s)")
     if out is not None:
         js, cs = save_result(result, out)
         log.info(f"wrote {js} and {cs}")
     return result
 
 
-@hydra.main(version_base="1.3", config_path="conf", config_name="config")
-def main(dcfg: DictConfig) -> None:
+def task(dcfg: DictConfig) -> None:
+    """Evaluate the policy ``agent`` names (a baseline, or a saved policy)."""
+    from hydra.core.hydra_config import HydraConfig
+
     with user_errors():
-        cfg = to_config(dcfg)
+        cfg = validated(dcfg)
         out = cfg.eval.out or Path(HydraConfig.get().runtime.output_dir) / "eval.json"
         run(cfg, out)
 
 
+main = hydra_command(task)
+
 if __name__ == "__main__":
-    check_command_line()
     main()

@@ -1,28 +1,33 @@
 """Summary of a grid-search multirun (``make grid``): rank configurations across seeds.
 
-    python -m fleet_torchrl.grid multirun/grid/<date_time>     # or no argument: the latest
+    fleet-grid sweep_dir=multirun/grid/<date_time>     # or none: the latest
+    (= python -m fleet_torchrl.grid ...)
 
 The command line only; what it computes is :mod:`fleet_torchrl.experiments.grid`.
 """
 
 from __future__ import annotations
 
-import argparse
-import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from .experiments.grid import FIELDS, collect, latest_sweep, markdown, summarize
+from .cli import hydra_command
+from .config import to_tool_config
+from .experiments.config import GridSummaryConfig
 from .utils.cli import user_errors
-from .utils.runinfo import write_csv, write_json, write_text
+
+if TYPE_CHECKING:
+    from omegaconf import DictConfig
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("sweep_dir", nargs="?", default=None)
-    p.add_argument("--out", default="results/grid", help="copy of the summary files")
-    a = p.parse_args(argv)
+def task(dcfg: DictConfig) -> None:
+    """Rank the grid's configurations; write the summary into the sweep folder and ``out``."""
+    from .experiments.grid import FIELDS, collect, latest_sweep, markdown, summarize
+    from .utils.runinfo import write_csv, write_json, write_text
+
     with user_errors():
-        sweep = Path(a.sweep_dir) if a.sweep_dir else latest_sweep()
+        c = to_tool_config(dcfg, GridSummaryConfig)
+        sweep = Path(c.sweep_dir) if c.sweep_dir else latest_sweep()
         if not sweep.is_dir():
             raise FileNotFoundError(f"no such sweep folder: {sweep}")
         jobs, missing, shared = collect(sweep)
@@ -30,14 +35,15 @@ def main(argv: list[str] | None = None) -> int:
             raise FileNotFoundError(f"no finished job in {sweep}")
     rows = summarize(jobs)
     md = markdown(rows, missing, sweep, shared)
-    for folder in (sweep, Path(a.out)):
+    for folder in (sweep, Path(c.out)):
         write_text(folder / "summary.md", md)
         write_csv(folder / "summary.csv", rows, FIELDS)
         write_json(folder / "summary.json", {"sweep": str(sweep), "shared": shared,
                                              "rows": rows, "missing": missing, "jobs": jobs})
     print(md)
-    return 0
 
+
+main = hydra_command(task, config_name="grid")
 
 if __name__ == "__main__":
-    sys.exit(main())
+    main()

@@ -1,7 +1,7 @@
 """How the MDP's reward ranks policies, next to the trips they make.
 
-    python -m fleet_torchrl.objective                         # mdp.reward=thesis
-    python -m fleet_torchrl.objective mdp.reward=throughput   # the trip-aligned objective
+    fleet-objective                         # mdp.reward=thesis (python -m fleet_torchrl.objective)
+    fleet-objective mdp.reward=throughput   # the trip-aligned objective
 
 Scores the rule, the heuristic family and every saved learned policy by the objective's
 reward beside their trips (:mod:`fleet_torchrl.experiments.objective`) and writes
@@ -11,22 +11,22 @@ reward beside their trips (:mod:`fleet_torchrl.experiments.objective`) and write
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import hydra
-from omegaconf import DictConfig
-
-from .config import check_command_line, register_configs, to_config
-from .experiments.objective import candidate_policies, criterion, mdp_score, score_table
+from .cli import hydra_command, validated
 from .utils.cli import user_errors
-from .utils.runinfo import run_info, write_json, write_text
 
-register_configs()
+if TYPE_CHECKING:
+    from omegaconf import DictConfig
 
 
-@hydra.main(version_base="1.3", config_path="conf", config_name="config")
-def main(dcfg: DictConfig) -> None:
+def task(dcfg: DictConfig) -> None:
+    """Score every candidate policy by the objective's reward and by its trips."""
+    from .experiments.objective import candidate_policies, criterion, mdp_score, score_table
+    from .utils.runinfo import run_info, write_json, write_text
+
     with user_errors():
-        cfg = to_config(dcfg)
+        cfg = validated(dcfg)
         o = cfg.objective
         scores = {name: mdp_score(p, cfg.site, cfg.mdp, o.n_sites, o.seed, cfg.eval.device)
                   for name, p in candidate_policies(cfg).items()}
@@ -43,6 +43,7 @@ def main(dcfg: DictConfig) -> None:
         print(f"wrote {out / 'objective.md'}")
 
 
+main = hydra_command(task)
+
 if __name__ == "__main__":
-    check_command_line()
     main()

@@ -1,26 +1,29 @@
-"""Policy maps (MODEL §5 item 2): ``make policy-maps`` (= ``python -m fleet_torchrl.policy_maps``).
+"""Policy maps (MODEL §5 item 2): ``make policy-maps`` (= ``fleet-policy-maps``, ``python -m
+fleet_torchrl.policy_maps``).
 
 The command line only; what it computes is :mod:`fleet_torchrl.experiments.policy_maps`.
 """
 
 from __future__ import annotations
 
-import hydra
-from omegaconf import DictConfig
+from typing import TYPE_CHECKING
 
-from .config import check_command_line, register_configs, to_config
-from .experiments.policy_maps import run
+from .cli import hydra_command, validated
 from .utils.cli import user_errors
 
-register_configs()
+if TYPE_CHECKING:
+    from omegaconf import DictConfig
 
 
-@hydra.main(version_base="1.3", config_path="conf", config_name="config")
-def main(dcfg: DictConfig) -> None:
+def task(dcfg: DictConfig) -> None:
+    """Draw the action map of every policy of ``maps.policies``."""
+    from .experiments.policy_maps import run
+
     with user_errors():
-        run(to_config(dcfg))
+        run(validated(dcfg))
 
+
+main = hydra_command(task)
 
 if __name__ == "__main__":
-    check_command_line()
     main()

@@ -1,36 +1,41 @@
 """Assemble ``docs/report.md`` from result files only: ``make report``.
 
-    python -m fleet_torchrl.report [--results results] [--out docs/report.md]
+    fleet-report [results=results] [out=docs/report.md]    (= python -m fleet_torchrl.report)
 
 The command line only; what it computes is :mod:`fleet_torchrl.experiments.report`.
 """
 
 from __future__ import annotations
 
-import argparse
-import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from .experiments.report import build
+from .cli import hydra_command
+from .config import to_tool_config
+from .experiments.config import ReportConfig
 from .utils.cli import user_errors
-from .utils.runinfo import write_text
+
+if TYPE_CHECKING:
+    from omegaconf import DictConfig
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--results", default="results")
-    p.add_argument("--out", default="docs/report.md")
-    a = p.parse_args(argv)
-    results = Path(a.results)
+def task(dcfg: DictConfig) -> None:
+    """Write the report from the result files under ``results``."""
+    from .experiments.report import build
+    from .utils.runinfo import write_text
+
     with user_errors():
+        c = to_tool_config(dcfg, ReportConfig)
+        results = Path(c.results)
         if not (results / "table" / "table.md").is_file():
             raise FileNotFoundError(f"no main comparison under {results} (table/table.md): run "
-                                    f"`make table` first; {a.out} is left unchanged")
-    out = Path(a.out)
+                                    f"`make table` first; {c.out} is left unchanged")
+    out = Path(c.out)
     write_text(out, build(results, out))
     print(f"[report] wrote {out}")
-    return 0
 
+
+main = hydra_command(task, config_name="report")
 
 if __name__ == "__main__":
-    sys.exit(main())
+    main()

@@ -58,7 +58,7 @@ def site_preset(name: str) -> SiteConfig | None:
     node = yaml.safe_load(path.read_text()) or {}
     values: dict = {}
     for parent in node.pop("defaults", []):
-        if parent in ("base_site", "_self_"):
+        if parent == "_self_" or parent.startswith("/schema_"):
             continue
         base = site_preset(parent)
         if base is None:

@@ -1,7 +1,7 @@
 """Generalisation sweeps (MODEL §5 item 3): saved policies evaluated on changed sites.
 
-    make sweep-pc      # = python -m fleet_torchrl.sweeps -m +experiment=sweep_pc
-                       #   then python -m fleet_torchrl.sweeps_summary pc
+    make sweep-pc      # = fleet-sweeps -m +experiment=sweep_pc   (python -m fleet_torchrl.sweeps)
+                       #   then fleet-sweeps-summary name=pc
 
 The command line only; what it computes is :mod:`fleet_torchrl.experiments.sweeps`.
 """
@@ -10,22 +10,23 @@ from __future__ import annotations
 
 import sys
 import traceback
+from typing import TYPE_CHECKING
 
-import hydra
-from omegaconf import DictConfig
-
-from .config import check_command_line, register_configs, to_config
-from .experiments.sweeps import point_path, run_point
+from .cli import hydra_command, validated
 from .utils.cli import user_errors
-from .utils.runinfo import write_text
 
-register_configs()
+if TYPE_CHECKING:
+    from omegaconf import DictConfig
 
 
-@hydra.main(version_base="1.3", config_path="conf", config_name="config")
-def main(dcfg: DictConfig) -> None:
+def task(dcfg: DictConfig) -> None:
+    """One point of a sweep (one Hydra job); a failure is written beside the point's result
+    (``.error``) and the other points go on."""
+    from .experiments.sweeps import point_path, run_point
+    from .utils.runinfo import write_text
+
     with user_errors():
-        cfg = to_config(dcfg)
+        cfg = validated(dcfg)
     try:
         run_point(cfg)
     except Exception as e:  # keep the other points of the multirun going
@@ -35,6 +36,7 @@ def main(dcfg: DictConfig) -> None:
               f"{path.with_suffix('.error')}", file=sys.stderr)
 
 
+main = hydra_command(task)
+
 if __name__ == "__main__":
-    check_command_line()
     main()

@@ -1,36 +1,45 @@
 """Collect the points of a sweep into ``results/sweeps/<name>.{csv,json,png}``.
 
-    python -m fleet_torchrl.sweeps_summary pc [--out results/sweeps]
+    fleet-sweeps-summary name=pc [out=results/sweeps]   (= python -m fleet_torchrl.sweeps_summary)
 
-The command line only; what it computes is :mod:`fleet_torchrl.experiments.sweeps_summary`.
+Exit code 1 when a point failed or an expected point is missing (the points of the packaged
+experiment ``sweep_<name>``, or ``expect``). The command line only; what it computes is
+:mod:`fleet_torchrl.experiments.sweeps_summary`.
 """
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from .experiments.sweeps_summary import summarize
+from .cli import hydra_command
+from .config import to_tool_config
+from .experiments.config import SweepSummaryConfig
 from .utils.cli import user_errors
 
+if TYPE_CHECKING:
+    from omegaconf import DictConfig
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("name")
-    p.add_argument("--out", default="results/sweeps")
-    p.add_argument("--expect", nargs="*", default=None,
-                   help="point names expected, e.g. p_c=0.0 p_c=0.2 (reported if missing)")
-    a = p.parse_args(argv)
+
+def task(dcfg: DictConfig) -> None:
+    """Summarise sweep ``name``; exit code 1 if a point failed or is missing."""
+    from .experiments.sweeps_summary import expected_points, summarize
+
     with user_errors():
-        s = summarize(a.name, Path(a.out), a.expect)
+        c = to_tool_config(dcfg, SweepSummaryConfig)
+        expect = c.expect if c.expect is not None else expected_points(c.name)
+        s = summarize(c.name, Path(c.out), expect)
     n_points = len({r["value"] for r in s["rows"]})
-    print(f"[sweep {a.name}] {n_points} points -> {a.out}/{a.name}.csv, .json, .png")
+    print(f"[sweep {c.name}] {n_points} points -> {c.out}/{c.name}.csv, .json, .png")
     for label, items in (("failed", s["failed"]), ("missing", s["missing"])):
         if items:
-            print(f"[sweep {a.name}] {label}: {', '.join(items)} (rerun the target to retry)")
-    return 1 if s["failed"] or s["missing"] else 0
+            print(f"[sweep {c.name}] {label}: {', '.join(items)} (rerun the target to retry)")
+    if s["failed"] or s["missing"]:
+        sys.exit(1)
 
+
+main = hydra_command(task, config_name="sweeps_summary")
 
 if __name__ == "__main__":
-    sys.exit(main())
+    main()

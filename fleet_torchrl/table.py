@@ -1,38 +1,39 @@
 """``make table``: the main comparison of MODEL §5 item 1 in one command.
 
-    python -m fleet_torchrl.table                       # defaults: 1000 sims x 10 000 ticks
-    python -m fleet_torchrl.table eval.n_sims=200 table.seeds=1 table.retrain=true
+    fleet-table                       # 1000 sims x 10 000 ticks (python -m fleet_torchrl.table)
+    fleet-table eval.n_sims=200 table.seeds=1 table.retrain=true
+    fleet-table table.only=[dqn_partial,search]    # some of the recipes
+    fleet-table hydra/launcher=slurm  # the trainings as Slurm jobs, like any sweep
 
-The command line only; what it trains, evaluates and writes is
-:mod:`fleet_torchrl.experiments.table`.
+``fleet-table ARGS`` is ``fleet-train hydra/sweeper=table hydra.mode=MULTIRUN
+hydra.sweep.dir='${table.runs_dir}' ARGS`` (:data:`TABLE`): a Hydra multirun of the ``train``
+task whose sweeper (``conf/hydra/sweeper/table.yaml``,
+:class:`~fleet_torchrl.experiments.launch.TableSweep`) decides which trainings are needed,
+launches them with the configured launcher and then evaluates; what it trains, evaluates and
+writes is :mod:`fleet_torchrl.experiments.table`.
 """
 
 from __future__ import annotations
 
-import subprocess
 import sys
+from typing import Any
 
-import hydra
-from omegaconf import DictConfig
+from .cli import hydra_command
+from .train import task
 
-from .config import check_command_line, register_configs, to_config
-from .experiments.table import run
-from .utils.cli import user_errors
+_train_app = hydra_command(task)
+# what makes the train app the table (a primary config of its own could not include
+# conf/config.yaml: Hydra takes hydra.searchpath, the users' conf/, from a primary only)
+TABLE = ["hydra/sweeper=table", "hydra.mode=MULTIRUN", "hydra.sweep.dir=${table.runs_dir}",
+         "hydra.help.app_name=fleet-table"]
 
-register_configs()
 
-
-@hydra.main(version_base="1.3", config_path="conf", config_name="config")
-def main(dcfg: DictConfig) -> None:
-    try:
-        with user_errors():
-            run(to_config(dcfg))
-    except subprocess.CalledProcessError as e:
-        print(f"error: training failed ({' '.join(e.cmd[2:4])}...); rerun `make table` to "
-              "resume it from its checkpoint", file=sys.stderr)
-        sys.exit(1)
+def main() -> Any:
+    """The train app with the table's sweeper; the command line's overrides come after
+    :data:`TABLE` (a ``hydra.sweep.dir`` of yours wins)."""
+    sys.argv = [sys.argv[0], *TABLE, *sys.argv[1:]]
+    return _train_app()
 
 
 if __name__ == "__main__":
-    check_command_line()
     main()

@@ -52,3 +52,20 @@ def saved_policies(tmp_path):
     save_policy(root / "generalist" / "policy.pt",
                 DQNPolicy(net, 3, "partial", "heuristic", 1.0), "dqn")
     return root
+
+
+@pytest.fixture
+def command(monkeypatch):
+    """Run a command's entry point (``fleet_torchrl.<command>.main``, what its console script
+    calls) in this process with ``args`` as its command line; returns its exit code."""
+    import sys
+
+    def run(main, *args: str) -> int:
+        monkeypatch.setattr(sys, "argv", ["fleet-command", *args])
+        try:
+            main()
+        except SystemExit as e:
+            return int(e.code or 0)
+        return 0
+
+    return run

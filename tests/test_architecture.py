@@ -108,3 +108,29 @@ def test_type_checking_imports_are_dependencies_too():
         probe.write_text("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n"
                          "    from fleet_torchrl.config import Config\n")
         assert "fleet_torchrl.config" in imports(probe)
+
+
+HEAVY = ("torch", "torchrl", "tensordict", "numba", "scipy", "matplotlib", "tensorboard")
+
+
+def test_composing_any_config_imports_no_heavy_package():
+    """--help and tab completion compose a config: every schema module, every group option
+    and experiment compose without torch, TorchRL or the plotting stack (each takes seconds
+    to import; torch and TorchRL together about 5 s on a 2-core CPU)."""
+    code = f"""
+import sys
+from hydra import compose, initialize_config_dir
+from fleet_torchrl.config import CONF_DIR, register_configs
+register_configs()
+options = [f"{{g.name}}={{p.stem}}" for g in CONF_DIR.iterdir() if g.is_dir()
+           and g.name not in ("hydra", "experiment") for p in g.glob("*.yaml")]
+options += [f"+experiment={{p.stem}}" for p in (CONF_DIR / "experiment").glob("*.yaml")]
+with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+    for o in options:
+        compose(config_name="config", overrides=[o])
+print(len(options), sorted(m for m in sys.modules if m.split(".")[0] in {HEAVY!r}))
+"""
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    count, heavy = r.stdout.split(" ", 1)
+    assert int(count) >= 20 and heavy.strip() == "[]", r.stdout

@@ -71,7 +71,6 @@ def test_site_variants():
     ("agent=dqn network.tau=1.5", "network.tau"),
     ("agent=dqn agent.n_steps=0", "agent.n_steps"),
     ("agent=dqn agent.reward_scale=0", "agent.reward_scale"),
-    ("table.jobs=0", "table.jobs"),
     ("eval.device=gpu0", "eval.device"),
     ("train.select=queue", "train.select"),
     ("agent=search agent.elite=64", "agent.elite"),
@@ -101,9 +100,9 @@ def test_typos_and_wrong_types_are_rejected_by_the_schema():
         compose_config(["site.n_vehicles=three"])
 
 
-def test_cli_reports_one_line_error_and_exit_code():
+def test_cli_reports_one_line_error_and_exit_code(tmp_path):
     r = subprocess.run([sys.executable, "-m", "fleet_torchrl.evaluate", "site.p_c=2"],
-                       capture_output=True, text=True, timeout=120)
+                       capture_output=True, text=True, timeout=120, cwd=tmp_path)
     assert r.returncode == 2
     assert r.stderr.strip().splitlines()[-1] == "error: site.p_c=2.0 is invalid: allowed [0.0, 1.0]"
 
@@ -126,17 +125,71 @@ def test_unknown_keys_added_with_plus_are_rejected():
                      "e_idle, e_move, leave_when_full, n_nodes, n_vehicles, name, p_c, ranges, "
                      "soc_low, t_c, xi)"),
 ])
-def test_hydra_level_errors_are_one_line_with_exit_code_2(override, expected):
+def test_hydra_level_errors_are_one_line_with_exit_code_2(override, expected, tmp_path):
     r = subprocess.run([sys.executable, "-m", "fleet_torchrl.evaluate", override],
-                       capture_output=True, text=True, timeout=120)
+                       capture_output=True, text=True, timeout=120, cwd=tmp_path)
     assert r.returncode == 2, r.stderr
     assert r.stderr.strip().splitlines() == [expected]
 
 
-def test_the_table_schema_default_is_the_yaml_default():
+@pytest.mark.parametrize("option", ["agent=schema_agent_rule", "agent=base_rule",
+                                    "site=schema_site", "network=schema_network"])
+def test_schemas_are_no_options(option):
+    """The schemas the YAML options extend are stored outside the groups: choosing one is an
+    unknown option, not a config with the schema's defaults."""
+    from hydra.errors import MissingConfigException
+
+    with pytest.raises(MissingConfigException, match="Could not find"):
+        compose_config([option])
+
+
+def test_help_lists_only_real_options():
+    from fleet_torchrl.config import register_configs
+
+    register_configs()
+    r = subprocess.run([sys.executable, "-m", "fleet_torchrl.evaluate", "--help"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    groups = r.stdout.split("== Config ==")[0]
+    assert "agent: dqn, heuristic, planner, rule, search, tabular, threshold" in groups
+    assert "schema" not in groups and "base_" not in groups
+
+
+def test_the_recipes_live_in_one_place():
+    """The learned runs are the recipes group only: the table, its preview (make quick) and
+    the benchmark read them; no schema or experiment carries its own list."""
     from fleet_torchrl.experiments.config import TableConfig
 
-    assert TableConfig().train == compose_config([]).table.train
+    cfg = compose_config([])
+    assert list(cfg.recipes) == ["tabular", "dqn_partial", "dqn_all", "tabular_throughput",
+                                 "dqn_partial_throughput", "generalist", "search", "search_mlp"]
+    assert not hasattr(TableConfig(), "train")
+    quick = compose_config(["+experiment=quick"])
+    assert quick.recipes == cfg.recipes and quick.table.preview and not cfg.table.preview
+    for name in ("tabular", "dqn_partial", "search_mlp"):  # overrides mentioned in the docs
+        assert cfg.recipes[name].overrides[0].startswith("agent=")
+    text = (CONF_DIR / "experiment" / "quick.yaml").read_text()
+    assert "agent=" not in text and "max_episodes" not in text
+
+
+def test_some_of_the_recipes():
+    cfg = compose_config(["table.only=[search,tabular]"])
+    assert cfg.table.names(cfg.recipes) == ["tabular", "search"]  # the recipes' order
+    assert compose_config([]).table.names(cfg.recipes) == list(cfg.recipes)
+
+
+@pytest.mark.parametrize("override, field", [
+    ("table.only=[nope]", "table.only[0]"),
+    ("table.only=[]", "table.only"),
+    ("recipes.tabular.overrides=[]", "recipes.tabular.overrides"),
+    ("recipes.tabular.overrides=['seed=3']", "recipes.tabular.overrides[0]"),
+    ("recipes.search.preview=['train.out_dir=x']", "recipes.search.preview[0]"),
+    ("recipes.search.preview=['hydra.run.dir=x']", "recipes.search.preview[0]"),
+])
+def test_bad_recipes_and_table_selections_name_the_field(override, field):
+    with pytest.raises(ConfigError) as e:
+        compose_config([override])
+    assert str(e.value).startswith(f"{field}=") and "allowed" in str(e.value)
 
 
 def test_run_names_tell_runs_apart():

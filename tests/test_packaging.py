@@ -21,8 +21,9 @@ ROOT = Path(__file__).resolve().parents[1]
 @pytest.mark.slow
 def test_wheel_contains_every_config(tmp_path):
     src = tmp_path / "src"  # build from a copy: no build/ folder in the checkout
-    shutil.copytree(ROOT / "fleet_torchrl", src / "fleet_torchrl",
-                    ignore=shutil.ignore_patterns("__pycache__"))
+    for package in ("fleet_torchrl", "hydra_plugins"):
+        shutil.copytree(ROOT / package, src / package,
+                        ignore=shutil.ignore_patterns("__pycache__"))
     for name in ("pyproject.toml", "README.md"):
         shutil.copy(ROOT / name, src / name)
     r = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation",
@@ -35,6 +36,13 @@ def test_wheel_contains_every_config(tmp_path):
     assert len(expected) >= 20
     assert expected <= names, sorted(expected - names)
     assert "fleet_torchrl/sim/site.py" in names and "fleet_torchrl/agents/registry.py" in names
+    # the table's sweeper, where Hydra looks for plugins; hydra_plugins stays a namespace
+    assert "hydra_plugins/fleet_torchrl_table/table_sweeper.py" in names
+    assert "hydra_plugins/__init__.py" not in names
+    assert not any(n.startswith("conf/") for n in names)  # the users' folder is not shipped
+    entry_points = next(n for n in names if n.endswith(".dist-info/entry_points.txt"))
+    scripts = zipfile.ZipFile(wheel).read(entry_points).decode()
+    assert "fleet-train = fleet_torchrl.train:main" in scripts
 
 
 # ---------------------------------------------------------------------- pyproject

@@ -108,10 +108,10 @@ def test_table_runs_keep_their_folders_and_share_one_only_with_their_recipe():
 
     cfg = compose_config([])
     table = {}
-    for key, overrides in cfg.table.train.items():
+    for key, recipe in cfg.recipes.items():
         run = compose_config(run_overrides(key, 1, cfg))
         assert Path(run.train.out_dir) == seed_dir("results/policies", key, 1)
-        table[key] = _recipe(compose_config(overrides))
+        table[key] = _recipe(compose_config(recipe.overrides))
     assert {"generalist", "dqn_partial_throughput", "search_mlp"} <= table.keys()
     for o in _readme_commands("train"):
         folder, recipe = _published(o)

@@ -16,9 +16,7 @@ replay buffer, exploration schedule) and is driven by the one training loop of
 
 from __future__ import annotations
 
-import math
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import torch
@@ -32,32 +30,6 @@ from ..sim.fused import KernelPolicy
 from ..sim.rollout import DecisionContext
 
 PASS, CHARGE = 0, 1
-
-
-@dataclass
-class AgentConfig:
-    """Base schema of the ``agent`` group; each agent extends it with its own fields."""
-
-    name: str = ""
-
-    def validate(self, cfg: Any = None, path: str = "agent") -> AgentConfig:
-        """Range checks of this agent's fields (``cfg``: the whole config, duck-typed, for
-        cross-checks such as the state the agent reads)."""
-        return self
-
-    def objective(self, mdp: Any) -> str:
-        """The objective this agent's policies are trained for (the table's column)."""
-        return mdp.reward
-
-    def run_suffix(self, mdp: Any) -> str:
-        """What a run's policy name adds to the agent's: the objective unless it is the
-        thesis's (``tabular_throughput``)."""
-        return "" if mdp.reward == "thesis" else f"_{mdp.reward}"
-
-    def training_rounds(self, train: Any) -> int:
-        """Rounds of the training loop: ``train.max_episodes`` episodes, one per site and round
-        (a learner with another budget overrides this)."""
-        return math.ceil(train.max_episodes / self.num_sites)  # type: ignore[attr-defined]
 
 
 class Policy(nn.Module):
@@ -111,6 +83,8 @@ class Learner(nn.Module, ABC):
     steps_per_round: int | None = None
     reset_each_round: bool = True
     evaluate_start: bool = False  # True: the training loop also evaluates the start policy
+    # the TensorBoard tag of exploration(): epsilon for the Q-learners, the search's spread
+    exploration_tag: ClassVar[str] = "train/epsilon"
 
     def start_round(self, round_idx: int) -> None:  # noqa: B027 (optional hook)
         """Called before the first step of round ``round_idx`` (0-based)."""
@@ -134,7 +108,8 @@ class Learner(nn.Module, ABC):
 
     @abstractmethod
     def exploration(self) -> float:
-        """The current exploration rate (epsilon), for logging."""
+        """The current exploration (epsilon, or what :attr:`exploration_tag` names), for
+        logging."""
 
     def checkpoint_components(self) -> dict[str, Any]:
         """Objects with ``state_dict``/``load_state_dict`` that a checkpoint needs besides the

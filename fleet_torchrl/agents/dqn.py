@@ -30,8 +30,7 @@ episode, before a truncated step, and at the end of the round.
 
 from __future__ import annotations
 
-import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from typing import Any
 
 import torch
@@ -49,102 +48,9 @@ from torchrl.modules import MLP, EGreedyModule, QValueActor
 from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate
 
 from ..env import MDPConfig, discount_exponent
-from ..utils.checks import ConfigError, check_choice, check_range
-from .base import AgentConfig, Learner, Policy
+from .base import Learner, Policy
 from .baselines import HeuristicPolicy
-
-LR_DECAYS = ("none", "cosine", "linear")
-ANCHORS = ("none", "heuristic")
-ANCHOR_STATES = ("partial", "partial_site")  # encodings whose features 0-2 the heuristic reads
-
-
-@dataclass
-class DQNAgentConfig(AgentConfig):
-    """Deep Q-learning on TorchRL (MODEL §3); the network is the ``network`` group."""
-
-    name: str = "dqn"
-    num_sites: int = 256  # sites simulated in parallel (one environment step = 256 decisions)
-    steps_per_round: int = 40  # decisions per site and round
-    eps_start: float = 1.0
-    eps_end: float = 0.05
-    eps_decay_frames: int = 400_000  # frames (decisions, all sites) to anneal epsilon
-    double_dqn: bool = True
-    prioritized: bool = False  # prioritized replay (alpha 0.6, beta 0.4)
-    updates_per_round: int = 200  # gradient steps after each collected round
-    n_steps: int = 3  # n-step returns: decisions folded into one stored transition
-    reset_each_round: bool = False  # false: episodes run on across rounds
-    reward_scale: float = 10.0  # rewards are multiplied by this in the replay buffer
-    policy: str | None = None  # saved policy for evaluation (default results/policies/dqn_<state>)
-    anchor: str = "none"  # none | heuristic: act as the heuristic unless Q disagrees clearly
-    anchor_margin: float = 0.0  # Q advantage (scaled reward units) needed to override it
-
-    def validate(self, cfg: Any = None, path: str = "agent") -> DQNAgentConfig:
-        check_range(f"{path}.num_sites", self.num_sites, 1, 1_000_000)
-        check_range(f"{path}.eps_start", self.eps_start, 0.0, 1.0)
-        check_range(f"{path}.eps_end", self.eps_end, 0.0, self.eps_start,
-                    allowed=f"[0, eps_start = {self.eps_start}]")
-        check_range(f"{path}.eps_decay_frames", self.eps_decay_frames, 1, None)
-        check_range(f"{path}.steps_per_round", self.steps_per_round, 1, None)
-        check_range(f"{path}.updates_per_round", self.updates_per_round, 0, None)
-        check_range(f"{path}.n_steps", self.n_steps, 1, 1000)
-        check_range(f"{path}.reward_scale", self.reward_scale, 1e-6, 1e6, allowed="[1e-06, 1e6]")
-        check_choice(f"{path}.anchor", self.anchor, ANCHORS)
-        check_range(f"{path}.anchor_margin", self.anchor_margin, 0.0, None)
-        state = getattr(getattr(cfg, "state", None), "name", None)
-        if self.anchor != "none" and state is not None and state not in ANCHOR_STATES:
-            raise ConfigError(f"{path}.anchor={self.anchor!r} is invalid with state={state!r}: "
-                              f"the heuristic reads the states {', '.join(ANCHOR_STATES)}; "
-                              "use one of them or agent.anchor=none")
-        return self
-
-    def run_suffix(self, mdp: Any) -> str:
-        """The objective's suffix, then ``_anchored`` for a policy anchored to the heuristic:
-        it acts unlike a plain DQN of the same recipe and must not replace one."""
-        return super().run_suffix(mdp) + ("" if self.anchor == "none" else "_anchored")
-
-
-@dataclass
-class NetworkConfig:
-    """Q-network and its optimisation (MODEL §3 table; grid-searched by ``make grid``)."""
-
-    name: str = "partial"
-    depth: int = 3  # hidden layers
-    width: int = 32  # units per hidden layer
-    lr: float = 1e-3  # Adam learning rate
-    weight_decay: float = 1e-4  # Adam L2 regularisation
-    batch_size: int = 256
-    buffer_size: int = 50_000
-    target_update: int = 500  # gradient steps between hard target-network copies
-    grad_clip: float = 0.0  # max gradient norm per step; 0 = no clipping
-    tau: float = 0.0  # > 0: soft target update by tau per step instead of hard copies
-    lr_decay: str = "cosine"  # none | cosine | linear, over all gradient steps of the run
-    lr_final: float = 0.05  # final learning rate as a fraction of lr (lr_decay != none)
-
-    def validate(self, path: str = "network") -> NetworkConfig:
-        check_range(f"{path}.depth", self.depth, 0, 64)
-        check_range(f"{path}.width", self.width, 1, 65_536)
-        check_range(f"{path}.lr", self.lr, 1e-12, 1.0, allowed="(0, 1]")
-        check_range(f"{path}.weight_decay", self.weight_decay, 0.0, 10.0)
-        check_range(f"{path}.batch_size", self.batch_size, 1, self.buffer_size,
-                    allowed=f"[1, buffer_size = {self.buffer_size}]")
-        check_range(f"{path}.buffer_size", self.buffer_size, 1, 100_000_000)
-        check_range(f"{path}.target_update", self.target_update, 1, None)
-        check_range(f"{path}.grad_clip", self.grad_clip, 0.0, None)
-        check_range(f"{path}.tau", self.tau, 0.0, 1.0)
-        check_choice(f"{path}.lr_decay", self.lr_decay, LR_DECAYS)
-        check_range(f"{path}.lr_final", self.lr_final, 0.0, 1.0)
-        return self
-
-    def lr_factor(self, total_updates: int):
-        """The learning-rate multiplier after ``k`` of ``total_updates`` gradient steps
-        (``None`` without decay)."""
-        if self.lr_decay == "none" or total_updates <= 0:
-            return None
-        floor = self.lr_final
-        if self.lr_decay == "cosine":
-            return lambda k: floor + (1 - floor) * 0.5 * (1 + math.cos(
-                math.pi * min(k / total_updates, 1.0)))
-        return lambda k: 1.0 - (1.0 - floor) * min(k / total_updates, 1.0)
+from .config import ANCHORS, DQNAgentConfig, NetworkConfig
 
 
 def make_qnet(net: NetworkConfig, n_obs: int) -> nn.Module:
@@ -332,11 +238,15 @@ class DQNLearner(Learner):
         self._steps.append(td.select(*self.KEYS).clone())
 
     def update(self) -> dict[str, float]:
-        """Store the round's transitions, then its gradient steps; logs the mean loss."""
+        """Store the round's transitions, then its gradient steps; logs the mean loss, the
+        learning rate, the mean gradient norm (before clipping) and the mean greedy Q-value
+        of the last batch (scaled reward units)."""
         if self._steps:
             self.store(torch.stack(self._steps, dim=1))
             self._steps = []
-        return {"loss/td": self.train_steps(self.updates_per_round),
+        loss, grad_norm, q_mean = self.train_steps(self.updates_per_round)
+        return {"loss/td": loss, "loss/grad_norm": grad_norm, "train/q_mean": q_mean,
+                "train/lr": float(self.optimizer.param_groups[0]["lr"]),
                 "train/buffer_size": len(self.buffer)}
 
     def store(self, batch: TensorDictBase) -> None:
@@ -346,19 +256,28 @@ class DQNLearner(Learner):
             trans.set(("next", "reward"), trans["next", "reward"] * self.reward_scale)
         self.buffer.extend(trans)
 
-    def train_steps(self, steps: int) -> float:
-        """``steps`` gradient steps; returns the mean loss (nan if the buffer is too small)."""
+    def train_steps(self, steps: int) -> tuple[float, float, float]:
+        """``steps`` gradient steps; returns the mean loss, the mean gradient norm before
+        clipping and the mean greedy Q of the last batch (all nan if the buffer is too
+        small). The norm is measured without touching the gradients, so logging it changes
+        no number of the run."""
+        nan = float("nan")
         if len(self.buffer) < self.buffer.batch_size or steps == 0:
-            return float("nan")
+            return nan, nan, nan
         total = 0.0
+        norms = torch.zeros((), device=self.optimizer.param_groups[0]["params"][0].device)
+        params = list(self.loss.value_network_params.values(True, True))
         for _ in range(steps):
             sample = self.buffer.sample()
             loss = self.loss(sample)["loss"]
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
             if self.grad_clip > 0:
-                torch.nn.utils.clip_grad_norm_(self.loss.value_network_params.values(True, True),
-                                               self.grad_clip)
+                norm = torch.nn.utils.clip_grad_norm_(params, self.grad_clip)
+            else:
+                norm = torch.nn.utils.get_total_norm(
+                    [p.grad for p in params if p.grad is not None])
+            norms += norm.detach()
             self.optimizer.step()
             if self.scheduler is not None:
                 self.scheduler.step()
@@ -366,7 +285,9 @@ class DQNLearner(Learner):
             if self.prioritized:
                 self.buffer.update_tensordict_priority(sample)
             total += float(loss.detach())
-        return total / steps
+        with torch.no_grad():
+            q_mean = float(self.qnet(sample["observation"]).max(-1).values.mean())
+        return total / steps, float(norms) / steps, q_mean
 
     def state_dict(self, *args, **kwargs):  # networks + target + eps + optimizer + schedule
         sd = super().state_dict(*args, **kwargs)

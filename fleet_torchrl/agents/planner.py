@@ -37,46 +37,13 @@ with batched forward passes.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from pathlib import Path
-from typing import Any
-
 import torch
 from torch import Tensor
 
 from ..sim import D, Site, SiteState, rng
 from ..sim.rollout import DecisionContext, advance
-from ..utils.checks import ConfigError, check_range
-from .base import AgentConfig, Policy
-
-BASELINE_BASES = ("rule", "heuristic", "threshold")
-
-
-@dataclass
-class PlannerAgentConfig(AgentConfig):
-    """The rollout planner (module docstring). Defaults from the study in docs/PLANNER.md."""
-
-    name: str = "planner"
-    base: str = "heuristic"  # base policy: rule | heuristic | threshold | a saved policy path
-    rollouts: int = 16  # futures per action (K)
-    horizon: int = 200  # ticks per future (H)
-    energy_value: float = 0.02  # trips per unit of soc left in the fleet at the horizon
-    confidence: float = 2.0  # standard errors by which the other action must score better
-    seed: int = 0  # the planner's own random streams
-
-    def validate(self, cfg: Any = None, path: str = "agent") -> PlannerAgentConfig:
-        if self.base not in BASELINE_BASES:
-            p = Path(self.base)
-            if not (p.is_file() or (p / "policy.pt").is_file()):
-                raise ConfigError(f"{path}.base={self.base!r} is invalid: allowed one of "
-                                  f"{', '.join(BASELINE_BASES)} or the path of a saved policy "
-                                  "(policy.pt or its folder) that exists")
-        check_range(f"{path}.rollouts", self.rollouts, 2, 4096)
-        check_range(f"{path}.horizon", self.horizon, 1, 1_000_000)
-        check_range(f"{path}.energy_value", self.energy_value, 0.0, 10.0)
-        check_range(f"{path}.confidence", self.confidence, 0.0, 100.0)
-        check_range(f"{path}.seed", self.seed, 0, 2**32 - 1)
-        return self
+from .base import Policy
+from .config import BASELINE_BASES, PlannerAgentConfig
 
 
 class PlannerPolicy(Policy):
@@ -85,8 +52,8 @@ class PlannerPolicy(Policy):
 
     name = "planner"
 
-    def __init__(self, base: Policy, rollouts: int = 16, horizon: int = 200,
-                 energy_value: float = 0.02, confidence: float = 2.0, seed: int = 0) -> None:
+    def __init__(self, base: Policy, rollouts: int = 32, horizon: int = 200,
+                 energy_value: float = 0.02, confidence: float = 1.5, seed: int = 0) -> None:
         super().__init__()
         if isinstance(base, PlannerPolicy):
             raise ValueError("a planner's base policy cannot be a planner")
@@ -145,4 +112,4 @@ class PlannerPolicy(Policy):
                    agent.seed)
 
 
-__all__ = ["PlannerAgentConfig", "PlannerPolicy"]
+__all__ = ["BASELINE_BASES", "PlannerAgentConfig", "PlannerPolicy"]

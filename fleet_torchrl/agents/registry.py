@@ -1,8 +1,9 @@
 """The one place that maps agent names to their schema, policy class and builder.
 
-Adding a learner is one module (schema, policy, :class:`~fleet_torchrl.agents.base.Learner`),
-one ``fleet_torchrl/conf/agent/<name>.yaml`` and one :func:`register` call below; nothing
-else switches on agent names. Baselines are entries with ``make_policy`` (built from their
+Adding a learner is its schema in ``agents/config.py`` (free of torch, so that composing a
+config stays fast), one module (policy, :class:`~fleet_torchrl.agents.base.Learner`), one
+``fleet_torchrl/conf/agent/<name>.yaml`` and one :func:`register` call below; nothing else
+switches on agent names. Baselines are entries with ``make_policy`` (built from their
 config); learners are entries with ``make_learner`` (built from a :class:`LearnerContext`,
 the explicit group configs a learner needs; their policies are loaded from files). Where
 policies are published and found (names, folders) is :mod:`fleet_torchrl.store`'s business,
@@ -20,14 +21,26 @@ import torch
 
 from ..env.config import MDPConfig
 from ..sim import SiteConfig
-from .base import AgentConfig, Learner, Policy
-from .baselines import HeuristicAgentConfig, HeuristicPolicy, RuleAgentConfig, RulePolicy
-from .dqn import DQNAgentConfig, DQNLearner, DQNPolicy
-from .planner import BASELINE_BASES, PlannerAgentConfig, PlannerPolicy
+from .base import Learner, Policy
+from .baselines import HeuristicPolicy, RulePolicy
+from .config import (
+    AGENT_SCHEMAS,
+    BASELINE_BASES,
+    AgentConfig,
+    DQNAgentConfig,
+    HeuristicAgentConfig,
+    PlannerAgentConfig,
+    RuleAgentConfig,
+    SearchAgentConfig,
+    TabularAgentConfig,
+    ThresholdAgentConfig,
+)
+from .dqn import DQNLearner, DQNPolicy
+from .planner import PlannerPolicy
 from .policy_files import POLICY_FILE, read_policy_file
-from .search import SearchAgentConfig, SearchLearner, SearchPolicy
-from .tabular import TabularAgentConfig, TabularLearner, TabularQPolicy
-from .threshold import ThresholdAgentConfig, ThresholdPolicy
+from .search import SearchLearner, SearchPolicy
+from .tabular import TabularLearner, TabularQPolicy
+from .threshold import ThresholdPolicy
 
 
 @dataclass(frozen=True)
@@ -71,7 +84,10 @@ AGENTS: dict[str, AgentSpec] = {}
 
 
 def register(spec: AgentSpec) -> AgentSpec:
+    """Add an agent; its schema joins :data:`~fleet_torchrl.agents.config.AGENT_SCHEMAS`,
+    which :func:`fleet_torchrl.config.register_configs` stores for Hydra."""
     AGENTS[spec.name] = spec
+    AGENT_SCHEMAS[spec.name] = spec.schema
     return spec
 
 

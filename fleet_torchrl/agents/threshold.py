@@ -23,7 +23,6 @@ evaluation of a threshold policy runs without one Python iteration per decision.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -31,8 +30,8 @@ import torch
 from torch import Tensor
 
 from ..sim.fused import THRESHOLD, KernelPolicy
-from ..utils.checks import check_range
-from .base import AgentConfig, Policy
+from .base import Policy
+from .config import ThresholdAgentConfig
 
 # the order of a kernel row (sim/kernel.py: THR_*)
 FIELDS = ("low", "free_upper", "margin", "others_below", "busy_tc", "busy_upper")
@@ -67,29 +66,6 @@ def threshold_actions(rows: Tensor, obs: Tensor) -> Tensor:
     free = (f2 == 0) & (f0 <= t[..., 1]) & (f0 <= f1 + t[..., 2]) & (f1 <= t[..., 3])
     busy = (f2 > 0) & (f2 <= t[..., 4]) & (f0 <= t[..., 5])
     return ((f0 <= t[..., 0]) | free | busy).long()
-
-
-@dataclass
-class ThresholdAgentConfig(AgentConfig):
-    """A threshold policy (module docstring); ``null`` turns a rule off."""
-
-    name: str = "threshold"
-    low: float = 40.0
-    free_upper: float | None = None
-    margin: float = 0.0
-    others_below: float | None = None
-    busy_tc: float | None = None
-    busy_upper: float | None = None
-
-    def validate(self, cfg: Any = None, path: str = "agent") -> ThresholdAgentConfig:
-        for name in ("low", "free_upper", "others_below", "busy_upper"):
-            v = getattr(self, name)
-            if v is not None:
-                check_range(f"{path}.{name}", v, 0.0, 100.0)
-        check_range(f"{path}.margin", self.margin, -100.0, 100.0)
-        if self.busy_tc is not None:
-            check_range(f"{path}.busy_tc", self.busy_tc, 0.0, 1.0)
-        return self
 
 
 class ThresholdPolicy(Policy):

@@ -5,7 +5,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from ..utils.checks import check_choice, check_range
-from .objectives import OBJECTIVES, get_objective
 
 
 @dataclass
@@ -34,6 +33,8 @@ class MDPConfig:
     rho: float = 0.115  # reference trips per tick subtracted every tick (throughput)
 
     def validate(self, path: str = "mdp") -> MDPConfig:
+        from .objectives import OBJECTIVES  # numpy and torch: not for composing a config
+
         check_range(f"{path}.tau_e", self.tau_e, 1, 10**9)
         check_choice(f"{path}.reward", self.reward, tuple(OBJECTIVES))
         check_range(f"{path}.p_f", self.p_f, 0.0, None)
@@ -46,6 +47,8 @@ class MDPConfig:
     @property
     def objective(self):
         """The :class:`~fleet_torchrl.env.objectives.Objective` that ``reward`` names."""
+        from .objectives import get_objective
+
         return get_objective(self.reward)
 
     @property

@@ -1,6 +1,6 @@
 """Throughput benchmark: ``make bench`` (``python -m fleet_torchrl.bench --help``).
 
-Measures, for batch sizes ``B`` in {1, 64, 1024, 8192} (median of ``--repeats`` runs):
+Measures, for batch sizes ``B`` in {1, 64, 1024, 8192} (median of ``bench.repeats`` runs):
 
 * ``sim``: bare :meth:`Site.tick` calls (closures pre-drawn), ticks/s and site-ticks/s;
 * ``eval``: the evaluation loop with the rule policy deciding in the loop, site-ticks/s;
@@ -139,25 +139,18 @@ def bench_kernel(b: int, ticks: int, repeats: int, device: str = "cpu") -> float
     return median_time(run, repeats)
 
 
-LEARNERS = {"tabular": ["agent=tabular"], "dqn_partial": ["agent=dqn", "state=partial"],
-            "dqn_all": ["agent=dqn", "state=all"],
-            "generalist": ["agent=dqn", "site=randomized", "mdp.reward=throughput",
-                           "agent.reward_scale=1.0", "agent.anchor=heuristic",
-                           "agent.anchor_margin=4.0"],
-            "search": ["agent=search"],
-            "search_mlp": ["agent=search", "agent.policy_class=mlp"]}
-
-
-def bench_training(rounds: int = 4, device: str = "cpu") -> dict[str, dict[str, float]]:
-    """Training throughput of each learner with its default settings: decisions per second
-    over ``rounds`` rounds (collection, learning and the round's bookkeeping; evaluation,
-    checkpoints and TensorBoard left out), after one warm-up round."""
+def bench_training(recipes: dict[str, list[str]], rounds: int = 4, device: str = "cpu"
+                   ) -> dict[str, dict[str, float]]:
+    """Training throughput of each recipe (name -> its training overrides: the table's runs,
+    ``conf/recipes/``): decisions per second over ``rounds`` rounds (collection, learning and
+    the round's bookkeeping; evaluation, checkpoints and TensorBoard left out), after one
+    warm-up round."""
     from ..config import compose_config
     from ..training import Trainer
 
     out = {}
     with tempfile.TemporaryDirectory() as d:
-        for name, overrides in LEARNERS.items():
+        for name, overrides in recipes.items():
             cfg = compose_config([*overrides, f"train.device={device}", "train.progress=false",
                                   "train.tensorboard=false", f"train.out_dir={d}/{name}"])
             trainer = Trainer(cfg, f"{d}/{name}_run")

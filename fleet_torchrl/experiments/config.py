@@ -6,54 +6,89 @@ from dataclasses import dataclass, field
 
 from ..utils.checks import ConfigError, check_choice, check_range
 
+# overrides a recipe may not set: the table sets them for each training seed
+TABLE_SETS = ("seed", "resume", "train.out_dir", "train.device", "train.progress")
+
+
+@dataclass
+class Recipe:
+    """One learned run of the main table (the ``recipes`` group, ``conf/recipes/``): the
+    overrides of its training run (learner, state, objective, site, budget) and the shorter
+    budget a preview appends (``make quick``: ``table.preview=true``). The table, the preview,
+    the benchmark and the names the sweeps and policy maps accept all read these."""
+
+    overrides: list[str] = field(default_factory=list)
+    preview: list[str] = field(default_factory=list)
+
+    def validate(self, path: str) -> Recipe:
+        if not self.overrides:
+            raise ConfigError(f"{path}.overrides=[] is invalid: allowed a list of training "
+                              "overrides, at least agent=<learner>")
+        for kind in ("overrides", "preview"):
+            for i, o in enumerate(getattr(self, kind)):
+                key = o.split("=", 1)[0].lstrip("+~")
+                if "=" not in o or key in TABLE_SETS or key.startswith(("hydra.", "hydra/")):
+                    raise ConfigError(
+                        f"{path}.{kind}[{i}]={o!r} is invalid: allowed overrides key=value of "
+                        f"the training run, not {', '.join(TABLE_SETS)} (the table sets them "
+                        "per seed) nor Hydra's own")
+        return self
+
+    def training_overrides(self, preview: bool) -> list[str]:
+        """The overrides of this recipe's training run (with the preview's budget)."""
+        return [*self.overrides, *(self.preview if preview else [])]
+
+
+def validate_recipes(recipes: dict[str, Recipe], reserved: tuple[str, ...],
+                     path: str = "recipes") -> dict[str, Recipe]:
+    """Every recipe's overrides; names are folder names (letters, digits, ``_``, ``-``) and
+    not those of the baselines (``reserved``), which the table and the sweeps list beside them."""
+    import re
+
+    if not recipes:
+        raise ConfigError(f"{path}={{}} is invalid: allowed at least one recipe "
+                          "(conf/recipes/default.yaml)")
+    for name, recipe in recipes.items():
+        if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_-]*", name) or name in reserved:
+            raise ConfigError(f"{path}.{name} is invalid: allowed a name of letters, digits, "
+                              f"'_' and '-' other than {', '.join(reserved)}")
+        recipe.validate(f"{path}.{name}")
+    return recipes
+
 
 @dataclass
 class TableConfig:
-    """``make table``: train what is missing, then evaluate all policies (MODEL §5 item 1)."""
+    """``make table``: train what is missing, then evaluate all policies (MODEL §5 item 1).
+    What it trains are the ``recipes`` (``conf/recipes/default.yaml``); ``only`` narrows them.
+    The trainings are jobs of Hydra's launcher: ``hydra.launcher.n_jobs`` of them at once
+    (2 by default, ``conf/hydra/launcher/local.yaml``), or ``hydra/launcher=slurm``."""
 
     out: str = "results/table"
     policies_dir: str = "results/policies"
     runs_dir: str = "outputs/table"  # Hydra run folders of the trainings (logs, checkpoints)
     seeds: int = 3  # training seeds per learned run: seed, seed + 1, ...
-    jobs: int = 2  # training runs at once (each its own process)
     retrain: bool = False  # train again even when a saved policy exists
     evaluate: bool = True  # false: only make sure the policies exist (make policies)
     # one step of policy improvement over every row (the rollout planner, agent=planner
     # defaults, with the row's policy as base; learned rows: their lowest seed), on the
     # first improve_sims sites of the evaluation; 0 = skip
     improve_sims: int = 200
-    # extra overrides of each training run (the learned policies and their budgets)
-    # name -> overrides of its training run (learner, state, objective, budget); the YAML
-    # default (conf/config.yaml) lists the thesis and the throughput runs
-    train: dict[str, list[str]] = field(default_factory=lambda: {
-        "tabular": ["agent=tabular", "train.max_episodes=12800", "train.threads=1"],
-        "dqn_partial": ["agent=dqn", "state=partial", "train.max_episodes=30720",
-                        "train.eval_every=4", "train.eval_sims=1000", "train.eval_ticks=5000",
-                        "train.threads=1"],
-        "dqn_all": ["agent=dqn", "state=all", "network.width=128", "train.max_episodes=20480",
-                    "train.eval_every=4", "train.eval_sims=1000", "train.eval_ticks=5000",
-                    "train.threads=1"],
-        "tabular_throughput": ["agent=tabular", "mdp.reward=throughput",
-                               "train.max_episodes=12800", "train.threads=1"],
-        "dqn_partial_throughput": ["agent=dqn", "state=partial", "mdp.reward=throughput",
-                                   "agent.reward_scale=1.0", "train.max_episodes=30720",
-                                   "train.eval_every=4", "train.eval_sims=1000",
-                                   "train.eval_ticks=5000", "train.threads=1"],
-        "generalist": ["agent=dqn", "state=partial", "site=randomized",
-                       "mdp.reward=throughput", "agent.reward_scale=1.0",
-                       "agent.anchor=heuristic", "agent.anchor_margin=4.0",
-                       "train.max_episodes=30720", "train.eval_every=4",
-                       "train.eval_sims=1000", "train.eval_ticks=5000", "train.threads=1"],
-        "search": ["agent=search", "train.threads=1"],
-        "search_mlp": ["agent=search", "agent.policy_class=mlp", "agent.sigma_init=0.3",
-                       "agent.sigma_min=0.01", "agent.sites=128", "train.threads=1"],
-    })  # the same as conf/config.yaml (tests/test_config.py checks)
+    only: list[str] | None = None  # some of the recipes (e.g. [dqn_partial,search]); null: all
+    preview: bool = False  # append each recipe's preview budget (make quick)
 
-    def validate(self, path: str = "table") -> TableConfig:
+    def validate(self, recipes: tuple[str, ...] = (), path: str = "table") -> TableConfig:
         check_range(f"{path}.seeds", self.seeds, 1, 1000)
         check_range(f"{path}.improve_sims", self.improve_sims, 0, 10**7)
-        check_range(f"{path}.jobs", self.jobs, 1, 256)
+        for i, name in enumerate(self.only or []):
+            check_choice(f"{path}.only[{i}]", name, recipes)
+        if self.only is not None and not self.only:
+            raise ConfigError(f"{path}.only=[] is invalid: allowed null (every recipe) or "
+                              f"some of {', '.join(recipes)}")
         return self
+
+    def names(self, recipes: dict[str, Recipe]) -> list[str]:
+        """The recipes this table trains and evaluates, in the recipes' order."""
+        return [n for n in recipes if self.only is None or n in self.only]
 
 
 @dataclass
@@ -77,7 +112,7 @@ class SweepConfig:
         "search_table": ["agent.policy_class=table", "agent.tc_bins=4"],
     })
     search_seeded: bool = True  # each search starts from the best start of its class
-    # site specialists: recipes of table.train (row -> recipe name) trained on the point's
+    # site specialists: recipes (conf/recipes, row -> recipe name) trained on the point's
     # own site, cached like the searches; specialist_seeds training seeds (seed, seed + 1,
     # ...), more_seeds at the points of more_seeds_at ("<param>=<value>");
     # specialist=false skips them
@@ -173,3 +208,76 @@ class ObjectiveConfig:
         check_range(f"{path}.n_sites", self.n_sites, 1, 10**7)
         check_range(f"{path}.seed", self.seed, 0, 2**32 - 1)
         return self
+
+
+@dataclass
+class BenchConfig:
+    """``make bench`` (``fleet-bench``): throughput of the simulator, the evaluation, the
+    environment and the recipes' trainings (docs/BENCHMARKS.md)."""
+
+    batches: list[int] = field(default_factory=lambda: [1, 64, 1024, 8192])  # sites at once
+    site_ticks: float = 4e6  # site-ticks per measurement (ticks = site_ticks / B, 200..10000)
+    repeats: int = 5  # the median of this many runs
+    device: str = "cpu"
+    env_steps: int | None = None  # environment steps per measurement; null: 200, 50 from B=1024
+    protocol: bool = True  # the thesis protocol's wall time (1000 x 10 000, CPU)
+    training: bool = True  # every recipe's training throughput (conf/recipes/)
+    out: str | None = None  # also write the figures as JSON
+
+    def validate(self, path: str = "bench") -> BenchConfig:
+        if not self.batches:
+            raise ConfigError(f"{path}.batches=[] is invalid: allowed a list of batch sizes")
+        for i, b in enumerate(self.batches):
+            check_range(f"{path}.batches[{i}]", b, 1, 10**7)
+        check_range(f"{path}.site_ticks", self.site_ticks, 1.0, 1e12)
+        check_range(f"{path}.repeats", self.repeats, 1, 1000)
+        if self.env_steps is not None:
+            check_range(f"{path}.env_steps", self.env_steps, 1, 10**7)
+        return self
+
+
+# ------------------------------------------------------------------ the file tools' schemas
+# The commands that only read result files (fleet-compare, fleet-report, fleet-grid,
+# fleet-sweeps-summary) have their own small primary configs (conf/<command>.yaml); they share
+# the commands' convention: Hydra overrides key=value.
+@dataclass
+class CompareConfig:
+    """``fleet-compare``: the paired gain in trips of one evaluation result over another."""
+
+    result: str | None = None  # a result JSON (fleet-evaluate eval.out=...)
+    baseline: str | None = None  # the result it is compared with (same eval.seed: paired)
+
+    def validate(self) -> CompareConfig:
+        for name in ("result", "baseline"):
+            if not getattr(self, name):
+                raise ConfigError(f"{name}=null is invalid: allowed the path of an evaluation "
+                                  "result, e.g. fleet-compare result=results/eval/heur.json "
+                                  "baseline=results/eval/rule.json")
+        return self
+
+
+@dataclass
+class ReportConfig:
+    """``fleet-report`` (``make report``): docs/report.md from the result files only."""
+
+    results: str = "results"  # the folder the experiments wrote
+    out: str = "docs/report.md"
+
+
+@dataclass
+class GridSummaryConfig:
+    """``fleet-grid``: rank the configurations of a grid multirun across seeds."""
+
+    sweep_dir: str | None = None  # a grid multirun's folder; null: the latest in multirun/grid
+    out: str = "results/grid"  # where a copy of the summary goes
+
+
+@dataclass
+class SweepSummaryConfig:
+    """``fleet-sweeps-summary``: collect a sweep's points into results/sweeps/<name>.*."""
+
+    name: str = "pc"  # the sweep: results/sweeps/<name>/
+    out: str = "results/sweeps"
+    # point names expected (p_c=0.0, ...), reported if missing; null: the points of the
+    # packaged experiment conf/experiment/sweep_<name>.yaml (none for another name)
+    expect: list[str] | None = None

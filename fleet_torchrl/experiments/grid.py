@@ -1,6 +1,6 @@
 """Summary of a grid-search multirun (``make grid``): rank configurations across seeds.
 
-    python -m fleet_torchrl.grid multirun/grid/<date_time>     # or no argument: the latest
+    fleet-grid sweep_dir=multirun/grid/<date_time>     # or none: the latest
 
 Reads every job's ``train_summary.json`` and ``.hydra/overrides.yaml``, groups the jobs by
 their overrides without ``seed``, and ranks the configurations by the mean (over seeds) of

@@ -2,7 +2,7 @@
 on changed sites, next to the best policy known at each point.
 
     make sweep-pc      # = python -m fleet_torchrl.sweeps -m +experiment=sweep_pc
-                       #   then python -m fleet_torchrl.sweeps_summary pc
+                       #   then fleet-sweeps-summary name=pc
 
 Each Hydra job evaluates, at one point (``site.<param> = sweep.value``), with the evaluation
 protocol (``eval.n_sims`` x ``eval.ticks``, common random numbers: every row sees the same
@@ -174,9 +174,9 @@ def point_training(cfg: Config, run_cfg: Config, label: str) -> tuple[Policy, di
 
 
 def specialist_config(cfg: Config, site: SiteConfig, recipe: str, seed: int) -> Config:
-    """The training config of a specialist: the recipe of ``table.train`` on the point's own
+    """The training config of a specialist: a recipe of ``recipes`` on the point's own
     site (a recipe of a site distribution cannot be a specialist)."""
-    run_cfg = compose_config([*cfg.table.train[recipe], f"seed={seed}",
+    run_cfg = compose_config([*cfg.recipes[recipe].overrides, f"seed={seed}",
                               "train.progress=false", "train.tensorboard=false"])
     if run_cfg.site.randomized:
         raise ConfigError(f"sweep.specialists: the recipe {recipe!r} trains on a site "

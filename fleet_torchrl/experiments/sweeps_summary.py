@@ -1,8 +1,9 @@
 """Collect the points of a sweep into ``results/sweeps/<name>.{csv,json,png}``.
 
-    python -m fleet_torchrl.sweeps_summary pc [--out results/sweeps]
+    fleet-sweeps-summary name=pc [out=results/sweeps]
 
-Lists failed points (``.error`` files) and, with ``--expect``, points that never ran.
+Lists failed points (``.error`` files) and the expected points that never ran (by default
+those of the packaged experiment ``conf/experiment/sweep_<name>.yaml``).
 """
 
 from __future__ import annotations
@@ -11,7 +12,24 @@ from pathlib import Path
 
 from ..utils.plotting import plot_sweep, save_figure
 from ..utils.runinfo import read_json, write_csv, write_json
-from .sweeps import POINT_FIELDS
+from .sweeps import POINT_FIELDS, point_value
+
+
+def expected_points(name: str) -> list[str] | None:
+    """The point names (``p_c=0.4``, ...) of the packaged sweep ``sweep_<name>``: its swept
+    ``sweep.value`` list and its ``sweep.param``; None for a sweep the package does not
+    define (then no point is reported missing)."""
+    import yaml
+
+    from ..config import CONF_DIR
+
+    path = CONF_DIR / "experiment" / f"sweep_{name}.yaml"
+    if not path.is_file():
+        return None
+    exp = yaml.safe_load(path.read_text())
+    param = exp["sweep"]["param"]
+    values = str(exp["hydra"]["sweeper"]["params"]["sweep.value"]).split(",")
+    return [f"{param}={point_value(param, float(v))}" for v in values]
 
 
 def summarize(name: str, out: Path, expect: list[str] | None = None) -> dict:

@@ -1,14 +1,17 @@
 """``make table``: the main comparison of MODEL §5 item 1, learned rows over training seeds.
 
-1. For each learned run of ``table.train`` (a name and the overrides of its training: the
-   learner, the state, the objective ``mdp.reward`` and the budget) and each of the
+1. For each recipe (``conf/recipes/``: a name and the overrides of its training: the
+   learner, the state, the objective ``mdp.reward``, the site and the budget; ``table.only``
+   narrows them, ``table.preview`` appends each one's shorter budget) and each of the
    ``table.seeds`` training seeds ``seed, seed + 1, ...``: reuse
    ``results/policies/<name>/seed<s>/policy.pt`` if its ``train_summary.json`` records the
-   same training configuration, else train it in a subprocess (``python -m
-   fleet_torchrl.train``) whose Hydra run directory is ``outputs/table/train_<name>_seed<s>``
-   (its TensorBoard curves are there). An interrupted ``make table`` resumes those runs from
-   their checkpoints; a checkpoint of another configuration, or an unreadable one, is moved
-   aside to ``train_<name>_seed<s>.stale-<time>``. ``table.jobs`` runs go at once.
+   same training configuration, else train it as a job of the ``train`` task
+   (:func:`plan_jobs`) in the run folder ``outputs/table/train_<name>_seed<s>`` (its
+   TensorBoard curves are there). Hydra's launcher runs the jobs (``hydra/launcher``: two
+   local processes by default; :class:`~fleet_torchrl.experiments.launch.TableSweep`). An
+   interrupted ``make table`` resumes those runs from their checkpoints; a checkpoint of
+   another configuration, or an unreadable one, is moved aside to
+   ``train_<name>_seed<s>.stale-<time>``.
 2. Evaluate the rule, the heuristic and every seed's policy with the protocol of MODEL §4 and
    common random numbers (``eval.*``, one seed for all: every comparison is paired).
 3. A learned row reports the mean over its seeds of each figure, the gain over the rule as the
@@ -22,10 +25,8 @@
 from __future__ import annotations
 
 import math
-import subprocess
-import sys
 import time
-from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -63,7 +64,7 @@ def training_seeds(cfg: Config) -> list[int]:
 def run_overrides(name: str, seed: int, cfg: Config) -> list[str]:
     """The overrides of training run ``name`` with ``seed`` (its policy goes to its seed dir)."""
     out_dir = seed_dir(cfg.table.policies_dir, name, seed)
-    return [*cfg.table.train[name], f"train.out_dir={out_dir}",
+    return [*cfg.recipes[name].training_overrides(cfg.table.preview), f"train.out_dir={out_dir}",
             f"train.device={cfg.train.device}", f"seed={seed}"]
 
 
@@ -83,17 +84,33 @@ def reusable(out_dir: Path, run_cfg: Config) -> bool:
             and rec.get("policy_sha256") == file_sha256(out_dir / POLICY_FILE))
 
 
-def plan_training(name: str, seed: int, cfg: Config) -> list[str] | None:
-    """The training command of ``name`` with ``seed``, or None when its saved policy can be
-    reused. Runs in the main thread (Hydra's compose is process-global, not thread-safe); a
-    stale or unreadable checkpoint in the run directory is set aside here."""
+@dataclass
+class TableJob:
+    """One training the table launches: recipe ``name`` with ``seed``, as the overrides of a
+    job of the ``train`` task (its run folder ``<table.runs_dir>/<folder>``)."""
+
+    name: str
+    seed: int
+    overrides: list[str]
+
+    @property
+    def folder(self) -> str:
+        return f"train_{self.name}_seed{self.seed}"
+
+
+def plan_training(name: str, seed: int, cfg: Config, progress: bool = False
+                  ) -> TableJob | None:
+    """The training job of ``name`` with ``seed``, or None when its saved policy can be
+    reused. Runs in the launching process (Hydra's compose is process-global); a stale or
+    unreadable checkpoint in the run folder is set aside here, a matching one resumed."""
     overrides = run_overrides(name, seed, cfg)
     run_cfg = compose_config(overrides)
     out_dir = Path(run_cfg.train.out_dir)
     if not cfg.table.retrain and reusable(out_dir, run_cfg):
         print(f"[table] reusing {out_dir / POLICY_FILE}", flush=True)
         return None
-    run_dir = Path(cfg.table.runs_dir) / f"train_{name}_seed{seed}"
+    job = TableJob(name, seed, [])
+    run_dir = Path(cfg.table.runs_dir) / job.folder
     resume = (run_dir / CHECKPOINT).exists() and not cfg.table.retrain
     if resume:
         try:
@@ -106,36 +123,23 @@ def plan_training(name: str, seed: int, cfg: Config) -> list[str] | None:
             print(f"[table] {run_dir} holds {why}: moved to {stale}, training afresh",
                   flush=True)
             resume = False
+    elif run_dir.exists() and cfg.table.retrain:
+        set_aside(run_dir)
+    if resume:
+        print(f"[table] resuming {run_dir}", flush=True)
     # progress bars of trainings that run side by side would interleave: one bar at most
-    progress = cfg.train.progress and cfg.table.jobs == 1
-    return [sys.executable, "-m", "fleet_torchrl.train", *overrides,
-            f"train.progress={str(progress).lower()}", f"hydra.run.dir={run_dir}",
-            f"resume={str(resume).lower()}"]
+    job.overrides = [*overrides, f"train.progress={str(progress).lower()}",
+                     f"resume={str(resume).lower()}",
+                     f"hydra.sweep.dir={cfg.table.runs_dir}", f"hydra.sweep.subdir={job.folder}"]
+    return job
 
 
-def run_training(cmd: list[str]) -> float:
-    """Run one planned training in its own process; its wall time in seconds."""
-    print(f"[table] training: {' '.join(cmd[2:])}", flush=True)
-    t0 = time.perf_counter()
-    subprocess.run(cmd, check=True)
-    return time.perf_counter() - t0
-
-
-def ensure_policies(cfg: Config) -> dict[tuple[str, int], float | None]:
-    """Train what is missing (``table.jobs`` at once); seconds per (name, seed): the training
-    time each policy's summary records, for a reused one too (a run just trained without a
-    summary falls back to its process's wall time; None if neither is known)."""
-    todo = [(name, seed) for name in cfg.table.train for seed in training_seeds(cfg)]
-    plans = {job: plan_training(*job, cfg) for job in todo}
-    runs = [job for job in todo if plans[job] is not None]
-    with ThreadPoolExecutor(max_workers=cfg.table.jobs) as pool:
-        times = dict(zip(runs, pool.map(lambda job: run_training(plans[job]), runs),
-                         strict=True))
-    out = {}
-    for job in todo:
-        rec = recorded_train_time(*job, cfg)
-        out[job] = rec if rec is not None else times.get(job)
-    return out
+def plan_jobs(cfg: Config, progress: bool = False) -> list[TableJob]:
+    """The trainings the table needs, recipe by recipe and seed by seed (reused policies
+    left out); ``progress``: whether a job may show its progress bar (one job at a time)."""
+    jobs = [plan_training(name, seed, cfg, progress) for name in cfg.table.names(cfg.recipes)
+            for seed in training_seeds(cfg)]
+    return [j for j in jobs if j is not None]
 
 
 def recorded_train_time(name: str, seed: int, cfg: Config) -> float | None:
@@ -148,7 +152,7 @@ def recorded_train_time(name: str, seed: int, cfg: Config) -> float | None:
 
 
 def objective_of(name: str, cfg: Config) -> str:
-    run_cfg = compose_config(list(cfg.table.train[name]))
+    run_cfg = compose_config(cfg.recipes[name].training_overrides(cfg.table.preview))
     return run_cfg.agent.objective(run_cfg.mdp)
 
 
@@ -214,33 +218,38 @@ def rows_markdown(rows: list[dict[str, Any]], cfg: Config) -> str:
     return "\n".join(lines) + "\n"
 
 
-def learning_curves(cfg: Config) -> dict[str, dict[int, list[tuple[float, float]]]]:
-    """(training seconds, evaluation gain %) of every evaluation of every saved run."""
+def learning_curves(cfg: Config) -> dict[str, dict[int, list[tuple[float, float, float]]]]:
+    """(training seconds, evaluation gain %, failure rate) of every evaluation of every
+    saved run."""
     curves: dict[str, dict[int, list[tuple[float, float]]]] = {}
-    for name in cfg.table.train:
+    for name in cfg.table.names(cfg.recipes):
         for seed in training_seeds(cfg):
             path = seed_dir(cfg.table.policies_dir, name, seed) / "train_summary.json"
             if path.is_file():
                 hist = read_json(path).get("history", [])
-                curves.setdefault(name, {})[seed] = [(h["wall_s"], h["gain_pct"]) for h in hist]
+                curves.setdefault(name, {})[seed] = [
+                    (h["wall_s"], h["gain_pct"], h.get("failure_rate", 0.0)) for h in hist]
     return curves
 
 
-def run(cfg: Config) -> list[dict[str, Any]]:
+def evaluate_table(cfg: Config, times: dict[tuple[str, int], float | None]
+                   ) -> list[dict[str, Any]]:
+    """Evaluate the baselines and every recipe's seeds (all trained by now), write the
+    table; ``times``: each training's wall time in seconds (None if unknown)."""
     out = Path(cfg.table.out)
-    times = ensure_policies(cfg)
-    if not cfg.table.evaluate:
-        return []
     e = cfg.eval
     meta = run_info(cfg, seed=e.seed)
+    total = len(BASELINES) + len(cfg.table.names(cfg.recipes)) * cfg.table.seeds
+    done = []
 
     def evaluate(policy, label: str) -> dict[str, Any]:
         res = evaluate_with(policy, cfg.site, e, name=label)
         res["meta"] = meta
         save_result(res, out / f"{label}.json")
-        print(f"[table] {label}: {res['trips_mean']:.2f} trips, {res['queue_mean']:.2f} queue "
-              f"ticks, failure rate {res['failure_rate']:.3f} ({res['wall_time_s']:.1f} s)",
-              flush=True)
+        done.append(label)
+        print(f"[table] evaluation {len(done)} of {total}, {label}: {res['trips_mean']:.2f} "
+              f"trips, {res['queue_mean']:.2f} queue ticks, failure rate "
+              f"{res['failure_rate']:.3f} ({res['wall_time_s']:.1f} s)", flush=True)
         return res
 
     baselines = load_policies(cfg, list(BASELINES))
@@ -261,7 +270,7 @@ def run(cfg: Config) -> list[dict[str, Any]]:
     rows = [improve(baseline_row(name, res, rule, heur), baselines[name], res)
             for name, res in base.items()]
     gains = {name: gain_over(res, rule)["per_sim_gain_pct"] for name, res in base.items()}
-    for name in cfg.table.train:
+    for name in cfg.table.names(cfg.recipes):
         per_seed, first = {}, None
         for seed in training_seeds(cfg):
             pol = load_policy_file(seed_dir(cfg.table.policies_dir, name, seed), e.device)

@@ -1,9 +1,21 @@
-"""Training: the one loop that serves every learner, its run state and checkpoints."""
+"""Training: the one loop that serves every learner, its run state and checkpoints. The
+schema imports at once; the rest on first use (:mod:`fleet_torchrl.utils.lazy`)."""
 
-from .checkpoint import CHECKPOINT, checkpoint_mismatch, training_fingerprint
+from typing import TYPE_CHECKING
+
+from ..utils.lazy import lazy_exports
 from .config import TrainConfig
-from .progress import EvalEntry, Progress
-from .trainer import Trainer
+
+__getattr__, __dir__ = lazy_exports(__name__, {
+    **{n: ".checkpoint" for n in ("CHECKPOINT", "checkpoint_mismatch",
+                                  "training_fingerprint")},
+    **{n: ".progress" for n in ("EvalEntry", "Progress")},
+    "Trainer": ".trainer"})
+
+if TYPE_CHECKING:
+    from .checkpoint import CHECKPOINT, checkpoint_mismatch, training_fingerprint
+    from .progress import EvalEntry, Progress
+    from .trainer import Trainer
 
 __all__ = ["CHECKPOINT", "EvalEntry", "Progress", "TrainConfig", "Trainer",
            "checkpoint_mismatch", "training_fingerprint"]

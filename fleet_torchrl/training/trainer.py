@@ -36,6 +36,7 @@ atomically every ``checkpoint_every`` rounds and at the end.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import logging
 import time
@@ -64,8 +65,16 @@ Config = Any  # the root ``Config``, duck-typed: this layer sits below it
 
 log = logging.getLogger(__name__)
 
-# the config groups that shape what a run learns (its TensorBoard hparams)
-TRAINING_GROUPS = ("site", "state", "mdp", "agent", "network", "train")
+
+def training_hparams(cfg: Config) -> dict[str, Any]:
+    """The TensorBoard hparams of a run: what shapes what it learns, the settings its
+    checkpoint must match (:func:`~fleet_torchrl.training.checkpoint.training_fingerprint`:
+    site, state, mdp, agent, network, train and seed), without run control (out_dir,
+    progress, tensorboard, device, threads, checkpoint_every) and without the policy file an
+    evaluation would load (``agent.policy``)."""
+    fp = training_fingerprint(cfg)
+    fp["agent"] = {k: v for k, v in fp["agent"].items() if k != "policy"}
+    return fp
 
 
 class EpisodeStats:
@@ -229,7 +238,7 @@ class Trainer:
         if steps == 0:  # a learner that simulates its own sites (direct policy search)
             out = {"episodes": 0, **learner.update()}
             out["frames"] = int(out.get("frames", 0))
-            out["train/epsilon"] = learner.exploration()
+            out[learner.exploration_tag] = learner.exploration()
             return out
         fresh = steps is None or learner.reset_each_round or self._next is None
         td = env.reset() if fresh else self._next
@@ -255,7 +264,7 @@ class Trainer:
         out = stats.summary()
         out.update(learner.update())
         out["frames"] = stats.frames
-        out["train/epsilon"] = learner.exploration()
+        out[learner.exploration_tag] = learner.exploration()
         return out
 
     # ------------------------------------------------------------------ evaluation
@@ -327,11 +336,20 @@ class Trainer:
         resumed = c.resume and self.load_checkpoint()
         p = self.progress
         bar = None
+        redirect = contextlib.nullcontext()
         if c.train.progress:
             from tqdm.auto import tqdm
+            from tqdm.contrib.logging import logging_redirect_tqdm
 
             bar = tqdm(total=self.n_rounds, initial=p.round, desc=f"train {self.name}",
                        unit="round")
+            redirect = logging_redirect_tqdm()  # log lines above the bar, not through it
+        with redirect:
+            return self._run_rounds(stop_after_rounds, resumed, bar)
+
+    def _run_rounds(self, stop_after_rounds: int | None, resumed: bool, bar: Any
+                    ) -> dict[str, Any]:
+        c, p = self.cfg, self.progress
         t_start = time.perf_counter() - p.wall_s
         rounds_done = 0
         if p.round == 0 and not p.history and self.learner.evaluate_start:
@@ -352,7 +370,8 @@ class Trainer:
             self.monitor.scalars({**stats, "train/episodes": p.episodes,
                                   "time/fps": n_frames / max(dt, 1e-9),
                                   "time/wall_s": p.wall_s, "time/round_s": dt}, step)
-            postfix = {"frames": step, "eps": f"{self.learner.exploration():.2f}"}
+            postfix = {"frames": step, self.learner.exploration_tag.split("/")[-1]:
+                       f"{self.learner.exploration():.2f}"}
             if p.round % c.train.eval_every == 0 or p.round == self.n_rounds:
                 entry = self.evaluate(step)
                 postfix["eval_trips"] = f"{entry.trips:.1f}"
@@ -375,8 +394,7 @@ class Trainer:
         if finished:
             summary = self.promote(summary)
             best = summary["best"]
-            hparams = {k: asdict(getattr(c, k)) for k in TRAINING_GROUPS}
-            self.monitor.hparams({**hparams, "seed": c.seed},
+            self.monitor.hparams(training_hparams(c),
                                  {"hparam/eval_trips": best["trips"],
                                   "hparam/gain_pct": best["gain_pct"],
                                   "hparam/failure_rate": best["failure_rate"]})

@@ -112,24 +112,43 @@ def plot_gain_boxplot(gains: dict[str, list[float]], title: str):
     return fig
 
 
-def plot_learning_curves(curves: dict[str, dict[int, list[tuple[float, float]]]]):
+def plot_learning_curves(curves: dict[str, dict[int, list[tuple[float, ...]]]]):
     """Evaluation gain over the rule against training wall time: one colour per learned run,
-    one line per training seed."""
+    one line per training seed. Points are ``(seconds, gain %)`` or ``(seconds, gain %,
+    failure rate)``.
+
+    The axis fits the evaluations without failures, whatever their range (a run that stays
+    at -10 % is drawn, not cut off); an evaluation with failures (tens of % below, early in
+    a run) would flatten every other curve, so where it falls below that range it is drawn
+    on the axis's lower edge as an ``x`` and counted in the legend."""
     fig, ax = plt.subplots(figsize=(6.4, 3.8))
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    points = [pt for s in curves.values() for pts in s.values() for pt in pts]
+    safe = [pt[1] for pt in points if len(pt) < 3 or pt[2] == 0]
+    fit = safe or [pt[1] for pt in points] or [-1.0, 1.0]
+    pad = 0.05 * (max(fit) - min(fit)) + 0.5
+    lo, hi = min(min(fit) - pad, -0.5), max(max(fit) + pad, 0.5)  # the rule's 0 in view
+    below = 0
     for i, (name, seeds) in enumerate(curves.items()):
+        colour = colours[i % len(colours)]
         for j, (_, pts) in enumerate(sorted(seeds.items())):
             if not pts:
                 continue
-            t, g = zip(*pts, strict=True)
-            ax.plot([x / 60 for x in t], g, color=colours[i % len(colours)], lw=1.0, alpha=0.8,
-                    label=name if j == 0 else None)
+            t = [pt[0] / 60 for pt in pts]
+            g = [max(pt[1], lo) for pt in pts]
+            ax.plot(t, g, color=colour, lw=1.0, alpha=0.8, label=name if j == 0 else None)
+            out = [(x, lo) for x, pt in zip(t, pts, strict=True) if pt[1] < lo]
+            if out:
+                below += len(out)
+                ax.scatter(*zip(*out, strict=True), marker="x", s=14, color=colour,
+                           clip_on=False, zorder=3)
+    if below:
+        ax.scatter([], [], marker="x", color="grey",
+                   label=f"{below} evaluations with failures, below the axis")
+    ax.set_ylim(lo, hi)
     ax.axhline(0.0, color="grey", lw=0.8, ls="--")
     ax.set_xlabel("training wall time (min)")
     ax.set_ylabel("eval gain over rule (%)")
-    gains = [g for s in curves.values() for p in s.values() for _, g in p]
-    lo, hi = (min(gains), max(gains)) if gains else (-1.0, 1.0)
-    ax.set_ylim(max(lo, -5.0) - 0.5, hi + 0.5)  # a failing snapshot would flatten the rest
     ax.set_title("learning curves (training-evaluation set, one line per seed)", fontsize=10)
     ax.legend(fontsize=7, loc="lower right")
     fig.tight_layout()

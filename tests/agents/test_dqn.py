@@ -20,10 +20,11 @@ def test_dqn_loss_falls_on_a_fixed_buffer():
     lrn = DQNLearner(cfg.agent, cfg.network, 3, "partial", env.action_spec, cfg.mdp, "cpu")
     batch = env.rollout(60, lrn.explore, break_when_any_done=False)
     lrn.store(batch)
-    first = lrn.train_steps(20)
+    first, norm, q = lrn.train_steps(20)
     for _ in range(10):
-        last = lrn.train_steps(40)
+        last = lrn.train_steps(40)[0]
     assert math.isfinite(first) and last < 0.5 * first
+    assert norm > 0 and math.isfinite(q)
     lrn.observe(batch[:, 0], torch.ones(8, dtype=torch.bool))
     assert lrn.exploration() < 1.0  # epsilon annealed by the observed frames
 

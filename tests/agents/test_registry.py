@@ -17,6 +17,7 @@ from fleet_torchrl.agents import (
     load_policy_file,
     register,
 )
+from fleet_torchrl.agents.config import AGENT_SCHEMAS
 from fleet_torchrl.config import CONF_DIR, compose_config
 from fleet_torchrl.store import make_policy, policy_name
 
@@ -93,6 +94,7 @@ def floor_agent():
     ConfigStore.instance().store(group="agent", name="floor", node=FloorAgentConfig)
     yield spec
     del AGENTS["floor"]
+    AGENT_SCHEMAS.pop("floor", None)
 
 
 def test_a_new_learner_trains_saves_and_evaluates_through_the_registry(tmp_path,

@@ -50,16 +50,17 @@ def test_result_files_and_pairwise_comparison(tmp_path):
         load_result(tmp_path / "junk.json")
 
 
-def test_compare_cli(tmp_path):
+def test_compare_cli(tmp_path, command, capsys):
     from fleet_torchrl.compare import main
 
     site = SiteConfig()
     save_result(evaluate_policy(RulePolicy(), site, 20, 800, seed=0), tmp_path / "r.json")
     save_result(evaluate_policy(HeuristicPolicy(), site, 20, 800, seed=0), tmp_path / "h.json")
-    assert main([str(tmp_path / "h.json"), str(tmp_path / "r.json")]) == 0
-    with pytest.raises(SystemExit) as e:
-        main([str(tmp_path / "h.json"), str(tmp_path / "nope.json")])
-    assert e.value.code == 2
+    assert command(main, f"result={tmp_path / 'h.json'}", f"baseline={tmp_path / 'r.json'}") == 0
+    assert "heuristic vs rule: +" in capsys.readouterr().out
+    assert command(main, f"result={tmp_path / 'h.json'}",
+                   f"baseline={tmp_path / 'nope.json'}") == 2
+    assert command(main, f"result={tmp_path / 'h.json'}") == 2  # no baseline: one line
 
 
 def test_gain_over_a_baseline_without_trips_is_a_clear_error():
@@ -174,7 +175,7 @@ def test_seed_interval_is_a_student_t_interval(n):
     assert out["mean"] == pytest.approx(float(x.mean())) and out["n"] == n
 
 
-def test_paired_gain_interval_is_a_paired_t_interval(tmp_path, capsys):
+def test_paired_gain_interval_is_a_paired_t_interval(tmp_path, capsys, command):
     """At 8 simulations ``compare`` printed ±3.60 with 1.96 where the paired t gives ±4.34."""
     from fleet_torchrl.compare import main
 
@@ -189,5 +190,5 @@ def test_paired_gain_interval_is_a_paired_t_interval(tmp_path, capsys):
     assert gain_over(res, base)["gain_ci95"] == pytest.approx(want, rel=1e-6)
     for name, r in (("a", res), ("b", base)):
         (tmp_path / f"{name}.json").write_text(json.dumps(r))
-    assert main([str(tmp_path / "a.json"), str(tmp_path / "b.json")]) == 0
+    assert command(main, f"result={tmp_path / 'a.json'}", f"baseline={tmp_path / 'b.json'}") == 0
     assert f"(95% CI ± {want:.2f})" in capsys.readouterr().out

@@ -4,14 +4,12 @@ from __future__ import annotations
 
 import json
 
-import pytest
-
 from fleet_torchrl import report
 from fleet_torchrl.config import compose_config
 from fleet_torchrl.experiments.table import rows_markdown
 
 
-def test_report_from_fixture_results(tmp_path):
+def test_report_from_fixture_results(tmp_path, command):
     res = tmp_path / "results"
     (res / "table").mkdir(parents=True)
     row = {"policy": "rule", "objective": "", "seeds": [], "trips_mean": 1135.0,
@@ -34,7 +32,7 @@ def test_report_from_fixture_results(tmp_path):
         "wall_s": 1500.0, "exit_code": 0, "finished": "2026-11-22T05:00:00+00:00",
         "machine": "x86_64, 2 CPUs"}}))
     out = tmp_path / "docs" / "report.md"
-    assert report.main(["--results", str(res), "--out", str(out)]) == 0
+    assert command(report.main, f"results={res}", f"out={out}") == 0
     text = out.read_text()
     assert "| dqn_all | thesis | 0, 1, 2 |" in text and "+2.30, +2.50, +2.70" in text
     assert "| 0.8 | +0.00 ± 0.30 | +1.50 ± 0.30 |" in text
@@ -45,9 +43,6 @@ def test_report_from_fixture_results(tmp_path):
     assert (tmp_path / "docs" / "figures" / "learning_curves.png").exists()
     before = out.read_text()
     (res / "table" / "table.md").unlink()  # no main comparison: refuse, keep the report
-    with pytest.raises(SystemExit) as e:
-        report.main(["--results", str(res), "--out", str(out)])
-    assert e.value.code == 2 and out.read_text() == before
-    with pytest.raises(SystemExit) as e:
-        report.main(["--results", str(tmp_path / "none"), "--out", str(out)])
-    assert e.value.code == 2
+    assert command(report.main, f"results={res}", f"out={out}") == 2
+    assert out.read_text() == before
+    assert command(report.main, f"results={tmp_path / 'none'}", f"out={out}") == 2

@@ -29,9 +29,9 @@ TINY_SEARCH = _searches(search_threshold=["agent.policy_class=threshold"],
                         search_table=["agent.policy_class=table", "agent.tc_bins=4"])
 TINY_PICK = ["sweep.pick_sims=8", "sweep.pick_ticks=300",
              "sweep.planner_overrides=['agent.rollouts=2','agent.horizon=20']"]
-# the specialists' recipes (table.train's), tiny; two seeds at p_c=0.8, one elsewhere
+# the specialists' recipes (conf/recipes), tiny; two seeds at p_c=0.8, one elsewhere
 def _recipe(name: str, *overrides: str) -> str:
-    return f"table.train.{name}=[" + ",".join(f"'{o}'" for o in overrides) + "]"
+    return f"recipes.{name}.overrides=[" + ",".join(f"'{o}'" for o in overrides) + "]"
 
 
 TINY_LEARN = ("train.eval_every=1", "train.eval_sims=8", "train.eval_ticks=300", "mdp.tau_e=300")
@@ -104,7 +104,7 @@ def test_a_sweep_on_a_site_distribution_is_refused():
 
 
 @pytest.mark.slow
-def test_miniature_sweep_end_to_end(tmp_path, saved_policies):
+def test_miniature_sweep_end_to_end(tmp_path, saved_policies, command):
     root = saved_policies
     out = tmp_path / "sweeps"
     cmd = [sys.executable, "-m", "fleet_torchrl.sweeps", "-m", "+experiment=sweep_pc",
@@ -117,7 +117,9 @@ def test_miniature_sweep_end_to_end(tmp_path, saved_policies):
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     assert sorted(p.name for p in (out / "pc").glob("*.json")) == ["p_c=0.4.json", "p_c=0.8.json"]
-    assert sweeps_summary.main(["pc", "--out", str(out), "--expect", "p_c=0.4", "p_c=0.8"]) == 0
+    assert "[sweeps] 2 of 2 jobs done: sweep.value=" in r.stdout  # overall progress
+    assert command(sweeps_summary.main, "name=pc", f"out={out}",
+                   "expect=['p_c=0.4','p_c=0.8']") == 0
     rows = list(csv.DictReader((out / "pc.csv").open()))
     assert set(rows[0]) == {"param", "value", "policy", "seeds", "trips_mean", "trips_std",
                             "queue_mean", "failure_rate", "failure_rate_max", "gain_pct",
@@ -182,7 +184,7 @@ def test_miniature_sweep_end_to_end(tmp_path, saved_policies):
         f"table.policies_dir={tmp_path / 'nowhere'}"]
     r3 = subprocess.run(bad, capture_output=True, text=True, timeout=300)
     assert r3.returncode == 0 and (out / "pc" / "p_c=0.6.error").exists()
-    assert sweeps_summary.main(["pc", "--out", str(out)]) == 1  # failed point reported
+    assert command(sweeps_summary.main, "name=pc", f"out={out}") == 1  # failed, missing points
 
 
 @pytest.mark.slow

@@ -218,3 +218,61 @@ def test_robust_selection_keeps_a_snapshot_that_never_loses_to_the_heuristic(tmp
     assert set(tr.strata) == set(site_strata(tr.cfg.site, 16, tr.cfg.train.eval_seed))
     assert tr.progress.best == (0.0, 0.0)
     assert out["best"]["trips"] == pytest.approx(tr.heuristic_eval["trips_mean"])
+
+
+def _scalar_tags(run_dir) -> set[str]:
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    ea = EventAccumulator(glob.glob(str(run_dir / "tb"))[0])
+    ea.Reload()
+    return set(ea.Tags()["scalars"])
+
+
+def test_dqn_logs_learning_rate_q_values_and_gradient_norm(tmp_path, monkeypatch):
+    """DQN's TensorBoard scalars say how the optimisation goes; the run's hparams are what
+    shapes what it learns, not how it is run."""
+    from fleet_torchrl.utils.monitor import Monitor
+
+    logged = {}
+    monkeypatch.setattr(Monitor, "hparams", lambda self, cfg, metrics: logged.update(cfg))
+    _train([*TINY_DQN, "network.lr_decay=cosine"], tmp_path)
+    tags = _scalar_tags(tmp_path)
+    assert {"train/lr", "train/q_mean", "loss/grad_norm", "loss/td", "train/epsilon"} <= tags
+    assert "train/spread" not in tags
+    assert logged["agent"]["n_steps"] == 3 and logged["network"]["lr_decay"] == "cosine"
+    assert logged["seed"] == 0 and "eval_sims" in logged["train"]
+    run_control = {"out_dir", "progress", "tensorboard", "device", "threads",
+                   "checkpoint_every"}
+    assert not run_control & set(logged["train"]) and "policy" not in logged["agent"]
+
+
+def test_the_search_logs_its_spread_under_its_own_name(tmp_path):
+    _train(["agent=search", "agent.generations=2", "agent.population=8", "agent.elite=2",
+            "agent.sites=4", "agent.ticks=200", "train.eval_every=1", "train.eval_sims=8",
+            "train.eval_ticks=300", "train.progress=false"], tmp_path)
+    tags = _scalar_tags(tmp_path)
+    assert "train/spread" in tags and "train/epsilon" not in tags
+
+
+def test_log_lines_go_above_the_progress_bar(tmp_path, capsys):
+    """With train.progress, a log line clears the bar and takes a line of its own (tqdm's
+    logging redirect); without it, it would be written onto the bar's line."""
+    import logging
+    import sys
+
+    root = logging.getLogger()
+    handler = logging.StreamHandler(sys.stderr)  # a console handler, as Hydra's job logging
+    level = root.level
+    root.addHandler(handler)
+    root.setLevel(logging.INFO)
+    try:
+        _train([*TINY_TAB, "train.max_episodes=128", "train.eval_every=1",
+                "train.progress=true", "train.tensorboard=false"], tmp_path)
+    finally:
+        root.removeHandler(handler)
+        root.setLevel(level)
+    err = capsys.readouterr().err
+    assert "train tabular" in err  # the bar ran
+    logs = [ln for ln in err.split("\n") if ": eval " in ln and "vs rule" in ln]
+    assert len(logs) >= 4
+    assert all(ln.split("\r")[-1].startswith("round ") for ln in logs), logs

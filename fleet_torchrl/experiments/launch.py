@@ -1,0 +1,207 @@
+"""One launcher path for every multi-run experiment: Hydra's sweepers and launchers.
+
+* :class:`JobProgress` (``hydra.callbacks.progress`` in ``conf/config.yaml``) prints, as each
+  job of any multirun ends (the grid, the sweeps, the table's trainings), ``k of N`` jobs
+  done, what the job was and how long it took. Jobs may run in other processes (joblib), on
+  other machines (Slurm, Ray): they count in files of the sweep folder, under a lock.
+* :class:`TableSweep` is what ``hydra/sweeper=table`` runs (``make table``): the table's
+  trainings are jobs of the ``train`` task launched by the configured launcher
+  (``hydra/launcher``: two local processes by default, Slurm or Ray like any sweep), and the
+  evaluation follows in the launching process. Which jobs to launch is decided first: a
+  recipe and seed whose published policy matches its settings is reused, a run folder
+  holding a checkpoint of the same settings is resumed, one of other settings is set aside
+  (:mod:`fleet_torchrl.experiments.table`).
+
+Hydra only loads sweepers from its ``hydra_plugins`` package, so the sweeper class itself is
+``hydra_plugins/fleet_torchrl_table/table_sweeper.py``, which hands over to this module.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from hydra.experimental.callback import Callback
+
+BASIC_SWEEPER = "hydra._internal.core_plugins.basic_sweeper.BasicSweeper"
+
+
+def sweep_jobs(config: Any) -> tuple[list[list[str]], list[str]] | None:
+    """The jobs Hydra's basic sweeper makes of a multirun's config (its ``sweeper.params``
+    and the command line's overrides) and the keys that vary; None for another sweeper or a
+    sweep it cannot expand ahead (glob, ranges it rejects)."""
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from omegaconf import OmegaConf
+
+    if OmegaConf.select(config, "hydra.sweeper._target_") != BASIC_SWEEPER:
+        return None
+    params = OmegaConf.select(config, "hydra.sweeper.params") or {}
+    args = [f"{k}={v}" for k, v in params.items()]
+    args += list(OmegaConf.select(config, "hydra.overrides.task") or [])
+    try:
+        overrides = OverridesParser.create().parse_overrides(args)
+        batches = BasicSweeper.split_arguments(overrides, None)
+    except Exception:  # noqa: BLE001 (a sweep Hydra will report itself)
+        return None
+    varying = [o.get_key_element() for o in overrides if o.is_sweep_override()]
+    return [job for batch in batches for job in batch], varying
+
+
+class JobProgress(Callback):
+    """``k of N`` jobs done for every multirun (see the module docstring)."""
+
+    def __init__(self) -> None:
+        self.folder: str | None = None  # <sweep dir>/.progress/<this multirun>
+        self.name = ""
+        self.keys: list[str] = []  # the overrides that tell the jobs apart
+        self._t0 = 0.0
+
+    # ---------------------------------------------------------------- the launching process
+    def on_multirun_start(self, config: Any, **kwargs: Any) -> None:
+        stamp = f"{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"
+        self.folder = str(Path(str(config.hydra.sweep.dir)) / ".progress" / stamp)
+        self.name = str(config.hydra.job.name)
+        jobs = sweep_jobs(config)
+        if jobs is not None:
+            self.keys = jobs[1]
+            self.set_total(len(jobs[0]))
+
+    def set_total(self, total: int, name: str | None = None) -> None:
+        """How many jobs this multirun launches (a sweeper that knows says so)."""
+        if self.folder is None:
+            return
+        self.name = name or self.name
+        Path(self.folder).mkdir(parents=True, exist_ok=True)
+        (Path(self.folder) / "total").write_text(str(total))
+
+    def on_multirun_end(self, config: Any, **kwargs: Any) -> None:
+        import shutil
+
+        if self.folder is not None:
+            shutil.rmtree(self.folder, ignore_errors=True)
+            parent = Path(self.folder).parent
+            if parent.is_dir() and not any(parent.iterdir()):
+                parent.rmdir()
+
+    # ---------------------------------------------------------------- each job's process
+    def on_job_start(self, config: Any, **kwargs: Any) -> None:
+        self._t0 = time.perf_counter()
+
+    def on_job_end(self, config: Any, job_return: Any, **kwargs: Any) -> None:
+        if self.folder is None or not Path(self.folder).is_dir():
+            return  # a single run, or a multirun whose size nobody knows
+        folder = Path(self.folder)
+        with _locked(folder / "lock"):
+            with open(folder / "done", "a") as f:
+                f.write(f"{config.hydra.job.num}\n")
+            done = len((folder / "done").read_text().split())
+        total = (folder / "total").read_text().strip() if (folder / "total").exists() else "?"
+        status = getattr(job_return.status, "name", str(job_return.status)).lower()
+        print(f"[{self.name}] {done} of {total} jobs done: {self.label(config)} ({status}, "
+              f"{time.perf_counter() - self._t0:.0f} s)", flush=True)
+
+    def label(self, config: Any) -> str:
+        """What tells this job apart: its swept overrides, else its folder's name."""
+        task = [o for o in config.hydra.overrides.task
+                if o.split("=", 1)[0].lstrip("+~") in self.keys]
+        return " ".join(task) or Path(str(config.hydra.runtime.output_dir)).name
+
+
+class _locked:
+    """An exclusive lock on ``path`` (``fcntl.flock``; a no-op where there is none): two jobs
+    that end together count as two."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+
+    def __enter__(self) -> None:
+        self.f = open(self.path, "a")  # noqa: SIM115 (closed in __exit__)
+        try:
+            import fcntl
+
+            fcntl.flock(self.f, fcntl.LOCK_EX)
+        except (ImportError, OSError):
+            pass
+
+    def __exit__(self, *exc: Any) -> None:
+        self.f.close()
+
+
+def progress_callback(hydra_context: Any) -> JobProgress | None:
+    callbacks = getattr(getattr(hydra_context, "callbacks", None), "callbacks", [])
+    return next((c for c in callbacks if isinstance(c, JobProgress)), None)
+
+
+class TableSweep:
+    """``make table`` as a Hydra sweep (see the module docstring): plan, launch the trainings
+    that are needed, evaluate."""
+
+    def __init__(self, hydra_context: Any, task_function: Any, config: Any) -> None:
+        self.hydra_context = hydra_context
+        self.task_function = task_function
+        self.config = config
+
+    def sweep(self, arguments: list[str]) -> list[Any]:
+        from hydra.core.plugins import Plugins
+        from hydra.core.utils import JobStatus
+        from omegaconf import OmegaConf, open_dict, read_write
+
+        from ..config import to_config, without_hydra
+        from ..utils.cli import user_errors
+        from .table import evaluate_table, plan_jobs, recorded_train_time, training_seeds
+
+        with user_errors():
+            cfg = to_config(without_hydra(self.config))
+        runs_dir = cfg.table.runs_dir
+        with read_write(self.config.hydra), open_dict(self.config.hydra):
+            self.config.hydra.sweep.dir = runs_dir  # where the launcher creates its folders
+        n_jobs = OmegaConf.select(self.config, "hydra.launcher.n_jobs")
+        one_at_a_time = n_jobs == 1 or OmegaConf.select(
+            self.config, "hydra.launcher._target_", default="").endswith("BasicLauncher")
+        with user_errors():
+            jobs = plan_jobs(cfg, progress=cfg.train.progress and one_at_a_time)
+        progress = progress_callback(self.hydra_context)
+        if progress is not None:
+            progress.set_total(len(jobs), name="table")
+        returns = []
+        if jobs:
+            print(f"[table] {len(jobs)} trainings to run ({n_jobs or 1} at a time), "
+                  f"run folders in {runs_dir}/", flush=True)
+            launcher = Plugins.instance().instantiate_launcher(
+                hydra_context=self.hydra_context, task_function=self.task_function,
+                config=self.config)
+            threads = _torch_threads()
+            returns = list(launcher.launch([j.overrides for j in jobs], initial_job_idx=0))
+            _torch_threads(threads)  # a job run in this process sets its own
+        failed = [(j, r) for j, r in zip(jobs, returns, strict=True)
+                  if r.status != JobStatus.COMPLETED]
+        for job, r in failed:
+            print(f"error: training {job.name} seed {job.seed} failed "
+                  f"({type(r._return_value).__name__}: {r._return_value}); see "
+                  f"{Path(runs_dir) / job.folder}/train.log; rerun `make table` to resume it "
+                  "from its checkpoint", file=sys.stderr)
+        if failed:
+            sys.exit(1)
+        if cfg.table.evaluate:
+            times = {(n, s): recorded_train_time(n, s, cfg)
+                     for n in cfg.table.names(cfg.recipes) for s in training_seeds(cfg)}
+            with user_errors():
+                evaluate_table(cfg, times)
+        return returns
+
+
+def _torch_threads(n: int | None = None) -> int | None:
+    """torch's CPU thread count (set it to ``n``), if torch is loaded."""
+    torch = sys.modules.get("torch")
+    if torch is None:
+        return None
+    if n is not None:
+        torch.set_num_threads(n)
+    return torch.get_num_threads()
+
+
+__all__ = ["JobProgress", "TableSweep", "sweep_jobs"]
