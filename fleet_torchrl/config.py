@@ -85,6 +85,8 @@ def validate(cfg: Config) -> Config:
     known = (*(n for n, s in AGENTS.items() if not s.trainable), *cfg.table.train.keys())
     cfg.table.validate()
     cfg.sweep.validate(known)
+    for row, recipe in cfg.sweep.specialists.items():
+        check_choice(f"sweep.specialists.{row}", recipe, tuple(cfg.table.train))
     cfg.maps.validate(known)
     cfg.objective.validate()
     return cfg

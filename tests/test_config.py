@@ -81,8 +81,8 @@ def test_site_variants():
     ("agent=search agent.smoothing=0", "agent.smoothing"),
     ("agent=search agent.p_min=0.5", "agent.p_min"),
     ("sweep.planner_overrides=['agent=dqn']", "sweep.planner_overrides[0]"),
-    ("sweep.searches={search_x:['site.p_c=0.1']}", "sweep.searches.search_x[0]"),
-    ("sweep.searches={mine:['agent.tc_bins=3']}", "sweep.searches.mine"),
+    ("+sweep.searches.search_x=['site.p_c=0.1']", "sweep.searches.search_x[0]"),
+    ("+sweep.searches.mine=['agent.tc_bins=3']", "sweep.searches.mine"),
     ("sweep.improve=[nope]", "sweep.improve[0]"),
 ])
 def test_bad_values_name_the_field(override, field):

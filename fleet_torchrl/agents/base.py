@@ -21,12 +21,13 @@ from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
+import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
 from torch import Tensor, nn
 
 from ..env.encodings import get_encoding
-from ..sim import Site, SiteState
+from ..sim import D, Site, SiteState
 from ..sim.fused import KernelPolicy
 from ..sim.rollout import DecisionContext
 
@@ -139,3 +140,28 @@ class Learner(nn.Module, ABC):
         """Objects with ``state_dict``/``load_state_dict`` that a checkpoint needs besides the
         learner itself (e.g. a replay buffer)."""
         return {}
+
+
+class GuardedPolicy(Policy):
+    """A policy with a policy-independent safety line: the vehicle at ``D`` charges whenever
+    its battery is below the site's reserve floor (:meth:`Site.reserve_floor`: one more lap
+    moving every tick plus waiting behind every other vehicle's full charge), whatever the
+    policy says; otherwise the policy decides. A learned policy trained on one site can
+    pass a nearly empty vehicle on another; this guard, reported wherever it is used, is
+    what keeps such a run from failing (it changes nothing where the policy already
+    charges below the floor, as the rule and the heuristic do on every site of the sweeps
+    but the slowest, most crowded ones)."""
+
+    def __init__(self, policy: Policy) -> None:
+        super().__init__()
+        self.policy = policy
+        self.name = policy.name
+        self.encoding = policy.encoding
+
+    def forward(self, obs: Tensor) -> Tensor:
+        raise TypeError("a guarded policy decides from the site's state: call decide()")
+
+    def decide(self, site: Site, state: SiteState, ctx: DecisionContext) -> Tensor:
+        act = self.policy.decide(site, state, ctx)
+        soc_d = (state.soc * (state.pos == D)).sum(0)
+        return torch.where(soc_d < site.reserve_floor(state.params), 1, act).to(act.dtype)

@@ -18,6 +18,10 @@ class TableConfig:
     jobs: int = 2  # training runs at once (each its own process)
     retrain: bool = False  # train again even when a saved policy exists
     evaluate: bool = True  # false: only make sure the policies exist (make policies)
+    # one step of policy improvement over every row (the rollout planner, agent=planner
+    # defaults, with the row's policy as base; learned rows: their lowest seed), on the
+    # first improve_sims sites of the evaluation; 0 = skip
+    improve_sims: int = 200
     # extra overrides of each training run (the learned policies and their budgets)
     # name -> overrides of its training run (learner, state, objective, budget); the YAML
     # default (conf/config.yaml) lists the thesis and the throughput runs
@@ -47,6 +51,7 @@ class TableConfig:
 
     def validate(self, path: str = "table") -> TableConfig:
         check_range(f"{path}.seeds", self.seeds, 1, 1000)
+        check_range(f"{path}.improve_sims", self.improve_sims, 0, 10**7)
         check_range(f"{path}.jobs", self.jobs, 1, 256)
         return self
 
@@ -72,6 +77,19 @@ class SweepConfig:
         "search_table": ["agent.policy_class=table", "agent.tc_bins=4"],
     })
     search_seeded: bool = True  # each search starts from the best start of its class
+    # site specialists: recipes of table.train (row -> recipe name) trained on the point's
+    # own site, cached like the searches; specialist_seeds training seeds (seed, seed + 1,
+    # ...), more_seeds at the points of more_seeds_at ("<param>=<value>");
+    # specialist=false skips them
+    specialist: bool = True
+    specialists: dict[str, str] = field(default_factory=lambda: {
+        "specialist_dqn": "dqn_partial", "specialist_tabular": "tabular"})
+    specialist_seeds: int = 1
+    more_seeds: int = 3
+    more_seeds_at: list[str] = field(default_factory=lambda: ["n_vehicles=5", "t_c=50"])
+    # learned policies act with the policy-independent safety guard (agents/base.py:
+    # GuardedPolicy, charge below the site's reserve floor), reported as such
+    guard: bool = True
     # the rollout planner (agent=planner, overrides of its settings), base the heuristic,
     # and the one-step improvement of these policies ("best_learned": the best learned
     # policy of sweep.policies on the pick set): rows planner, planner_<name>
@@ -90,14 +108,20 @@ class SweepConfig:
         check_range(f"{path}.pick_ticks", self.pick_ticks, 1, 10**8)
         for label, overrides in self.searches.items():
             if not label.startswith("search"):
-                raise ConfigError(f"{path}.searches.{label} is invalid: a search row's name "
-                                  "starts with 'search' (e.g. search_threshold)")
+                raise ConfigError(f"{path}.searches.{label}={list(overrides)} is invalid: "
+                                  "allowed row names start with 'search' (search_threshold)")
             check_overrides(f"{path}.searches.{label}", overrides, ("agent", "train", "seed"))
         check_overrides(f"{path}.planner_overrides", self.planner_overrides, ("agent",))
         for i, name in enumerate(self.policies):
             check_choice(f"{path}.policies[{i}]", name, known)
         for i, name in enumerate(self.improve):
-            check_choice(f"{path}.improve[{i}]", name, (*self.policies, "best_learned"))
+            check_choice(f"{path}.improve[{i}]", name, (*self.policies, "best_learned", "best"))
+        for row, recipe in self.specialists.items():
+            if not row.startswith("specialist"):
+                raise ConfigError(f"{path}.specialists.{row}={recipe!r} is invalid: allowed "
+                                  "row names start with 'specialist' (specialist_dqn)")
+        check_range(f"{path}.specialist_seeds", self.specialist_seeds, 1, 100)
+        check_range(f"{path}.more_seeds", self.more_seeds, 1, 100)
         return self
 
 
@@ -122,10 +146,18 @@ class MapsConfig:
     out: str = "results/policy_maps"
     policies: list[str] = field(default_factory=lambda: [
         "rule", "heuristic", "tabular", "dqn_partial", "generalist", "search"])
+    # the rollout planner (agent=planner defaults) decides from the whole site: its maps are
+    # the share of charge decisions in each cell among the states it met on these sites
+    # (site presets), over planner_sims x planner_ticks of the evaluation protocol
+    planner_sites: list[str] = field(default_factory=lambda: ["default", "five_vehicles"])
+    planner_sims: int = 200
+    planner_ticks: int = 5000
 
     def validate(self, known: tuple[str, ...], path: str = "maps") -> MapsConfig:
         for i, name in enumerate(self.policies):
             check_choice(f"{path}.policies[{i}]", name, known)
+        check_range(f"{path}.planner_sims", self.planner_sims, 1, 100_000)
+        check_range(f"{path}.planner_ticks", self.planner_ticks, 1, 10**7)
         return self
 
 

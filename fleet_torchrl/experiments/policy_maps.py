@@ -4,6 +4,12 @@ For each policy of ``maps.policies`` (saved ones from ``table.policies_dir``), t
 grid of ``soc_D`` (y) x lowest soc of the others (x), one panel per charger time ``TC``: free
 and busy for the rule, the heuristic and the tabular agent (which only sees TC > 0), and TC in
 {0, 0.2, ..., 1} for DQN. Writes ``results/policy_maps/<name>.png``.
+
+The rollout planner (MODEL §3.6) decides from the whole site, not from these three features,
+so it has no map of its own: :func:`planner_maps` runs it (its defaults, base the heuristic)
+on each site of ``maps.planner_sites`` and draws, per cell of ``soc_D`` x ``TC`` and of
+``soc_D`` x the lowest other soc, the share of charge decisions among the states it met
+(``results/policy_maps/planner_<site>.png``).
 """
 
 from __future__ import annotations
@@ -11,11 +17,70 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from ..store import load_policies
-from ..utils.plotting import plot_policy_map, save_figure
+import torch
+
+from ..agents.baselines import HeuristicPolicy
+from ..agents.planner import PlannerPolicy
+from ..config import compose_config
+from ..env.encodings import get_encoding
+from ..evaluation import simulate
+from ..store import load_policies, site_preset
+from ..utils.checks import ConfigError
+from ..utils.plotting import plot_decision_shares, plot_policy_map, save_figure
 
 if TYPE_CHECKING:
     from ..config import Config
+
+BINS = 20  # cells per axis of the planner's maps (5 % of soc, 1/20 of TC)
+
+
+def decision_shares(planner: PlannerPolicy, site, n_sims: int, ticks: int, seed: int
+                    ) -> dict[str, torch.Tensor]:
+    """Run ``planner`` on the protocol's sites and count its decisions per cell: returns the
+    share of charge per cell of ``soc_D`` x ``TC`` and ``soc_D`` x lowest other soc
+    (``[BINS, BINS]``, NaN where no state fell)."""
+    encode = get_encoding("partial")
+    feats, acts = [], []
+    inner = planner.decide
+
+    def record(site_, state, ctx):
+        a = inner(site_, state, ctx)
+        feats.append(encode(site_, state)[ctx.need].cpu())
+        acts.append(a[ctx.need].cpu())
+        return a
+
+    planner.decide = record  # (this instance only, for this run)
+    try:
+        simulate(planner, site, n_sims, ticks, seed)
+    finally:
+        del planner.decide
+    obs, act = torch.cat(feats), torch.cat(acts).double()
+    cell = lambda v: (v * BINS).long().clamp(0, BINS - 1)  # noqa: E731
+    out = {}
+    for key, col in (("tc", 2), ("others", 1)):
+        idx = cell(obs[:, 0]) * BINS + cell(obs[:, col])
+        n = torch.bincount(idx, minlength=BINS * BINS).double()
+        c = torch.bincount(idx, weights=act, minlength=BINS * BINS)
+        out[key] = torch.where(n > 0, c / n.clamp(min=1), float("nan")).view(BINS, BINS)
+    return out
+
+
+def planner_maps(cfg: Config) -> list[Path]:
+    out, paths = Path(cfg.maps.out), []
+    agent = compose_config(["agent=planner"]).agent
+    for name in cfg.maps.planner_sites:
+        site = site_preset(name)
+        if site is None:
+            raise ConfigError(f"maps.planner_sites: {name!r} is not a site preset")
+        shares = decision_shares(PlannerPolicy.from_config(agent, HeuristicPolicy()), site,
+                                 cfg.maps.planner_sims, cfg.maps.planner_ticks, cfg.eval.seed)
+        fig = plot_decision_shares(
+            [(shares["tc"], "TC (charger's remaining time)", (0.0, 1.0)),
+             (shares["others"], "lowest soc of the others", (0.0, 100.0))],
+            f"planner on site {name}: share of charge decisions among the states it met")
+        paths.append(save_figure(fig, out / f"planner_{name}.png"))
+        print(f"[policy-maps] {paths[-1]}")
+    return paths
 
 
 def run(cfg: Config) -> list[Path]:
@@ -26,4 +91,4 @@ def run(cfg: Config) -> list[Path]:
         fig = plot_policy_map(pol, title=f"{name}: charge (orange) / pass, by TC")
         paths.append(save_figure(fig, out / f"{name}.png"))
         print(f"[policy-maps] {paths[-1]}")
-    return paths
+    return paths + planner_maps(cfg)

@@ -42,11 +42,18 @@ def _sweep_pivot(rows: list[dict[str, Any]]) -> str:
             if r is None or r["gain_pct"] is None:
                 cells.append("")
             else:
-                fail = f", fail {r['failure_rate']:.3f}" if r["failure_rate"] > 0 else ""
+                worst = r.get("failure_rate_max", r["failure_rate"])
+                fail = (f", fail {r['failure_rate']:.3f}" if r["failure_rate"] > 0 else "")
+                if worst > r["failure_rate"]:
+                    fail += f" (worst seed {worst:.3f})"
                 share = r.get("share_of_best_known_pct")
                 share = (f" ({share:.0f} %)" if share is not None and p != "best_known"
                          else "")
-                cells.append(f"{r['gain_pct']:+.2f} ± {r['gain_ci95']:.2f}{share}{fail}")
+                ci = "" if r.get("gain_ci95") is None else f" ± {r['gain_ci95']:.2f}"
+                seeds = r.get("gain_per_seed") or []
+                per_seed = (" [" + "/".join(f"{g:+.2f}" for g in seeds) + "]"
+                            if len(seeds) > 1 else "")
+                cells.append(f"{r['gain_pct']:+.2f}{ci}{per_seed}{share}{fail}")
         lines.append(f"| {v} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 

@@ -8,7 +8,14 @@ Each Hydra job evaluates, at one point (``site.<param> = sweep.value``), with th
 protocol (``eval.n_sims`` x ``eval.ticks``, common random numbers: every row sees the same
 sites):
 
-* every policy of ``sweep.policies`` (baselines, and the default-site learners);
+* every policy of ``sweep.policies`` (baselines, and the default-site learners: every
+  training seed saved under ``table.policies_dir/<name>/seed<s>/``, a row being the mean over
+  the seeds with every seed's gain); learned policies act with the safety guard of
+  :class:`~fleet_torchrl.agents.base.GuardedPolicy` (``sweep.guard``, reported as such);
+* site specialists (``sweep.specialists``, unless ``sweep.specialist=false``): recipes of
+  ``make table`` (DQN-partial, tabular, ...) trained on the point's own site, with
+  ``sweep.specialist_seeds`` seeds (``sweep.more_seeds`` at the points of
+  ``sweep.more_seeds_at``), cached like the searches;
 * the point's own searches (``sweep.searches``, unless ``sweep.search=false``: the direct
   policy search, MODEL §3.4, with
   policy classes that read the charger's remaining time), each started from the best start
@@ -42,13 +49,13 @@ from pathlib import Path
 from typing import Any
 
 from ..agents import AGENTS, load_policy_file
-from ..agents.base import Policy
+from ..agents.base import GuardedPolicy, Policy
 from ..agents.baselines import HeuristicPolicy
 from ..agents.planner import PlannerPolicy
 from ..agents.policy_files import POLICY_FILE
 from ..agents.search import SearchPolicy, cell_centres, clone_policy, threshold_start
 from ..config import Config, compose_config
-from ..evaluation import evaluate_policy, evaluate_with, gain_over
+from ..evaluation import evaluate_policy, evaluate_with, gain_over, seed_interval
 from ..sim import SiteConfig
 from ..store import load_policies, saved_policy_path
 from ..training import Trainer, training_fingerprint
@@ -56,8 +63,9 @@ from ..utils.checks import ConfigError
 from ..utils.runinfo import file_sha256, read_json, run_info, to_jsonable, write_json
 from .table import reusable
 
-POINT_FIELDS = ("param", "value", "policy", "trips_mean", "trips_std", "queue_mean",
-                "failure_rate", "gain_pct", "gain_ci95", "share_of_best_known_pct")
+POINT_FIELDS = ("param", "value", "policy", "seeds", "trips_mean", "trips_std", "queue_mean",
+                "failure_rate", "failure_rate_max", "gain_pct", "gain_ci95", "gain_per_seed",
+                "share_of_best_known_pct")
 BEST_KNOWN = "best_known"  # the row of the best policy known at the point
 PLANNER = "planner"  # the rollout planner over the heuristic
 
@@ -149,29 +157,53 @@ def search_start(cfg: Config, run_cfg: Config, policies: dict[str, Policy]) -> s
     return str(saved_policy_path(cfg.table.policies_dir, best[1]))
 
 
-def point_search(cfg: Config, run_cfg: Config, label: str) -> tuple[Policy, dict[str, Any]]:
-    """A point's search policy (trained with ``run_cfg``, or reused when its settings and
-    start match) and its summary."""
-    init = Path(run_cfg.agent.init)
+def point_training(cfg: Config, run_cfg: Config, label: str) -> tuple[Policy, dict[str, Any]]:
+    """A policy trained on the point's site with ``run_cfg`` (a search or a specialist),
+    reused when its settings (and start) match, and its summary."""
+    init = Path(getattr(run_cfg.agent, "init", "") or "")
     init = init / POLICY_FILE if init.is_dir() else init
     start = file_sha256(init) if init.is_file() else None
     out = Path(cfg.sweep.search_dir) / label / digest([training_fingerprint(run_cfg), start])
     run_cfg.train.out_dir = str(out)
     if not reusable(out, run_cfg):
-        print(f"[sweep] {label}: searching -> {out}", flush=True)
+        print(f"[sweep] {label}: training -> {out}", flush=True)
         Trainer(run_cfg, out / "run").run()
     else:
-        print(f"[sweep] {label}: reusing the search in {out}", flush=True)
+        print(f"[sweep] {label}: reusing {out}", flush=True)
     return load_policy_file(out), read_json(out / "train_summary.json")
 
 
-def point_key(cfg: Config, site: SiteConfig, search_cfgs: dict[str, Config]) -> str:
+def specialist_config(cfg: Config, site: SiteConfig, recipe: str, seed: int) -> Config:
+    """The training config of a specialist: the recipe of ``table.train`` on the point's own
+    site (a recipe of a site distribution cannot be a specialist)."""
+    run_cfg = compose_config([*cfg.table.train[recipe], f"seed={seed}",
+                              "train.progress=false", "train.tensorboard=false"])
+    if run_cfg.site.randomized:
+        raise ConfigError(f"sweep.specialists: the recipe {recipe!r} trains on a site "
+                          "distribution; a specialist trains on the point's own site")
+    run_cfg.site = site
+    return run_cfg
+
+
+def specialist_seeds(cfg: Config, label: str) -> list[int]:
+    s = cfg.sweep
+    n = max(s.more_seeds, s.specialist_seeds) if label in s.more_seeds_at else s.specialist_seeds
+    return [cfg.seed + k for k in range(n)]
+
+
+def point_key(cfg: Config, site: SiteConfig, search_cfgs: dict[str, Config],
+              specialist_cfgs: dict[str, dict[int, Config]]) -> str:
     """Everything a point's result depends on, hashed (the sweep cache's key)."""
     e, s = cfg.eval, cfg.sweep
     parts: dict[str, Any] = {
         "site": site, "eval": {"n_sims": e.n_sims, "ticks": e.ticks, "seed": e.seed},
-        "policies": [policy_identity(cfg, n) for n in s.policies],
+        "policies": [policy_identity(cfg, n) for n in s.policies]
+        + [str(p) + ":" + file_sha256(p)[:16] for n in s.policies
+           for p in seed_paths(cfg, n).values()],
         "searches": {k: training_fingerprint(v) for k, v in search_cfgs.items()},
+        "specialists": {row: {seed: training_fingerprint(c) for seed, c in runs.items()}
+                        for row, runs in specialist_cfgs.items()},
+        "guard": s.guard, "seeds": "every seed of the learned policies",
         "search_seeded": s.search_seeded, "pick": [s.pick_sims, s.pick_ticks],
         "planner": asdict(planner_config(cfg)) if s.planner else None,
         "improve": list(s.improve),
@@ -188,10 +220,46 @@ def point_path(cfg: Config) -> Path:
     return Path(cfg.sweep.out) / cfg.sweep.name / f"{cfg.sweep.param}={v}.json"
 
 
-def best_of(keys: dict[str, tuple[float, float]]) -> str:
+def best_of(keys: dict[Any, tuple[float, float]]) -> Any:
     """The name with the best pick-set key (fewer failures, then more trips); on a tie the
     first in order (policies before searches before planners)."""
     return min(keys, key=lambda n: keys[n])
+
+
+def seed_paths(cfg: Config, name: str) -> dict[int, Path]:
+    """Every training seed's policy file of a learned policy of ``sweep.policies`` (``make
+    table``'s ``<name>/seed<s>/``), or its one policy (``make train``'s ``<name>/``) as seed 0;
+    empty for a baseline."""
+    spec = AGENTS.get(name)
+    if spec is not None and not spec.trainable:
+        return {}
+    folder = Path(cfg.table.policies_dir) / name
+    seeds = {int(p.parent.name[4:]): p for p in folder.glob(f"seed*/{POLICY_FILE}")
+             if p.parent.name[4:].isdigit()}
+    if not seeds:
+        seeds = {0: saved_policy_path(cfg.table.policies_dir, name)}
+    return dict(sorted(seeds.items()))
+
+
+def is_learned(name: str) -> bool:
+    """A learned row: a default-site learner or a specialist (not a baseline, a search, a
+    planner or best_known)."""
+    return (name not in AGENTS and not name.startswith(("search", PLANNER, BEST_KNOWN))) or \
+        name.startswith("specialist")
+
+
+def seed_row(name: str, per_seed: dict[int, dict[str, Any]], rule: dict[str, Any]
+             ) -> dict[str, Any]:
+    """A row of several training seeds: every figure the mean over the seeds, the gain with
+    its 95 % interval across seeds and each seed's gain, the worst seed's failure rate."""
+    gains = [gain_over(res, rule)["gain_pct"] for res in per_seed.values()]
+    gi = seed_interval(gains)
+    n = len(per_seed)
+    return {"policy": name, "seeds": list(per_seed), "gain_per_seed": gains,
+            **{k: sum(r[k] for r in per_seed.values()) / n
+               for k in ("trips_mean", "trips_std", "queue_mean", "failure_rate")},
+            "failure_rate_max": max(r["failure_rate"] for r in per_seed.values()),
+            "gain_pct": gi["mean"], "gain_ci95": None if n == 1 else gi["ci95"]}
 
 
 def run_point(cfg: Config) -> list[dict[str, Any]] | None:
@@ -206,7 +274,11 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
     site = replace(cfg.site, **{param: value}, name=label).validate()
     search_cfgs = ({k: search_config(cfg, site, o) for k, o in cfg.sweep.searches.items()}
                    if cfg.sweep.search else {})
-    key = point_key(cfg, site, search_cfgs)
+    specialist_cfgs = {row: {seed: specialist_config(cfg, site, recipe, seed)
+                             for seed in specialist_seeds(cfg, label)}
+                       for row, recipe in cfg.sweep.specialists.items()
+                       if cfg.sweep.specialist}
+    key = point_key(cfg, site, search_cfgs, specialist_cfgs)
     if path.exists():
         try:
             old = read_json(path).get("key")
@@ -217,55 +289,96 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
             return None
         print(f"[sweep] {path} was computed with other settings or policies: recomputing")
     e = cfg.eval
-    policies = load_policies(cfg, cfg.sweep.policies)
-    searches, summaries = {}, {}
+    guard = GuardedPolicy if cfg.sweep.guard else (lambda p: p)
+    # every row as {seed: policy}; a baseline, a search or a planner has one (seed None)
+    groups: dict[str, dict[int | None, Policy]] = {}
+    baselines = [n for n in cfg.sweep.policies if not seed_paths(cfg, n)]
+    for name, pol in load_policies(cfg, baselines).items():
+        groups[name] = {None: pol}
+    for name in cfg.sweep.policies:
+        if name not in groups:
+            groups[name] = {s: guard(_named(load_policy_file(p, e.device), name))
+                            for s, p in seed_paths(cfg, name).items()}
+    summaries: dict[str, Any] = {}
     for name, run_cfg in search_cfgs.items():
         if cfg.sweep.search_seeded and not any(o.split("=", 1)[0].lstrip("+~") == "agent.init"
                                                for o in cfg.sweep.searches[name]):
-            run_cfg.agent.init = search_start(cfg, run_cfg, policies)
+            starts = {n: next(iter(g.values())) for n, g in groups.items()}
+            run_cfg.agent.init = search_start(cfg, run_cfg, {
+                n: getattr(p, "policy", p) for n, p in starts.items()})
             print(f"[sweep] {label} {name}: starts from {run_cfg.agent.init}", flush=True)
-        searches[name], summaries[name] = point_search(cfg, run_cfg, f"{label}/{name}")
+        pol, summaries[name] = point_training(cfg, run_cfg, f"{label}/{name}")
         summaries[name]["init"] = run_cfg.agent.init
-    candidates: dict[str, Policy] = {**policies, **searches}
-    keys = {name: on_pick_set(cfg, site, pol) for name, pol in candidates.items()}
+        groups[name] = {None: pol}
+    for row, runs in specialist_cfgs.items():
+        groups[row] = {}
+        for seed, run_cfg in runs.items():
+            pol, summ = point_training(cfg, run_cfg, f"{label}/{row}/seed{seed}")
+            groups[row][seed] = guard(_named(pol, row))
+            summaries[f"{row}_seed{seed}"] = summ
+    keys = {(n, s): on_pick_set(cfg, site, p) for n, g in groups.items() for s, p in g.items()}
     if cfg.sweep.planner:
-        candidates[PLANNER] = make_planner(cfg, HeuristicPolicy())
-        keys[PLANNER] = on_pick_set(cfg, site, candidates[PLANNER])
-        for name in cfg.sweep.improve:
-            if name == "best_learned":
-                learned = [n for n in policies  # (the searches are not learners)
-                           if n not in AGENTS and not n.startswith("search")]
-                if not learned:
-                    continue
-                name = best_of({n: keys[n] for n in learned})
-            if name == "heuristic":
-                continue  # that is the planner row itself
+        groups[PLANNER] = {None: make_planner(cfg, HeuristicPolicy())}
+        keys[(PLANNER, None)] = on_pick_set(cfg, site, groups[PLANNER][None])
+        improved = set()
+        for want in cfg.sweep.improve:
+            pool = {k: v for k, v in keys.items() if not k[0].startswith(PLANNER)}
+            if want == "best_learned":
+                pool = {k: v for k, v in pool.items() if is_learned(k[0])}
+            elif want != "best":
+                pool = {k: v for k, v in pool.items() if k[0] == want}
+            if not pool:
+                continue
+            name, seed = best_of(pool)
+            if name == "heuristic" or (name, seed) in improved:
+                continue  # the heuristic's is the planner row itself
+            improved.add((name, seed))
             row = f"{PLANNER}_{name}"
-            candidates[row] = make_planner(cfg, policies[name])
-            keys[row] = on_pick_set(cfg, site, candidates[row])
+            groups[row] = {None: make_planner(cfg, groups[name][seed])}
+            keys[(row, None)] = on_pick_set(cfg, site, groups[row][None])
     best = best_of(keys)
-    print(f"[sweep] {label}: best known is {best} ({-keys[best][1]:.1f} trips on the pick "
-          "set)", flush=True)
-    results = {name: evaluate_with(pol, site, e, name=name) for name, pol in candidates.items()}
-    results[BEST_KNOWN] = {**results[best], "policy": BEST_KNOWN}
-    rule = results.get("rule")
+    print(f"[sweep] {label}: best known is {best[0]}"
+          + (f" seed {best[1]}" if best[1] is not None else "")
+          + f" ({-keys[best][1]:.1f} trips on the pick set)", flush=True)
+    results = {(n, s): evaluate_with(p, site, e, name=n if s is None else f"{n}_seed{s}")
+               for n, g in groups.items() for s, p in g.items()}
+    rule = results[("rule", None)] if ("rule", None) in results else None
     rows = []
-    for name, res in results.items():
-        g = gain_over(res, rule) if rule is not None else {"gain_pct": None, "gain_ci95": None}
-        rows.append({"param": param, "value": value, "policy": name,
-                     **{k: res[k] for k in ("trips_mean", "trips_std", "queue_mean",
+    for name, g in groups.items():
+        if list(g) == [None]:
+            res = results[(name, None)]
+            gn = gain_over(res, rule) if rule is not None else {"gain_pct": None,
+                                                                "gain_ci95": None}
+            rows.append({"policy": name, "seeds": [], "gain_per_seed": [],
+                         **{k: res[k] for k in ("trips_mean", "trips_std", "queue_mean",
+                                                "failure_rate")},
+                         "failure_rate_max": res["failure_rate"],
+                         "gain_pct": gn["gain_pct"], "gain_ci95": gn["gain_ci95"]})
+        else:
+            rows.append(seed_row(name, {s: results[(name, s)] for s in g}, rule))
+    top_res = results[best]
+    g_top = gain_over(top_res, rule) if rule is not None else {"gain_pct": None,
+                                                              "gain_ci95": None}
+    rows.append({"policy": BEST_KNOWN, "seeds": [] if best[1] is None else [best[1]],
+                 "gain_per_seed": [],
+                 **{k: top_res[k] for k in ("trips_mean", "trips_std", "queue_mean",
                                             "failure_rate")},
-                     "gain_pct": g["gain_pct"], "gain_ci95": g["gain_ci95"]})
-    top = next(r["gain_pct"] for r in rows if r["policy"] == BEST_KNOWN)
+                 "failure_rate_max": top_res["failure_rate"],
+                 "gain_pct": g_top["gain_pct"], "gain_ci95": g_top["gain_ci95"]})
+    top = rows[-1]["gain_pct"]
     for r in rows:  # share of the achievable gain: this row's gain over best_known's
+        r.update(param=param, value=value)
         ok = top is not None and r["gain_pct"] is not None and top > 0
         r["share_of_best_known_pct"] = 100.0 * r["gain_pct"] / top if ok else None
     write_json(path, {"rows": rows, "site": site, "key": key,
-                      "best_known": {"from": best, "pick_set": {
-                          n: {"failure_rate": k[0], "trips_mean": -k[1]}
-                          for n, k in keys.items()}},
-                      "searches": {n: {**{k: s[k] for k in ("run_dir", "wall_s", "best")},
-                                       "init": s["init"]} for n, s in summaries.items()},
+                      "best_known": {"from": best[0], "seed": best[1], "pick_set": {
+                          (n if s is None else f"{n}_seed{s}"):
+                          {"failure_rate": k[0], "trips_mean": -k[1]}
+                          for (n, s), k in keys.items()}},
+                      "guard": cfg.sweep.guard,
+                      "trainings": {n: {**{k: v[k] for k in ("run_dir", "wall_s", "best")},
+                                        **({"init": v["init"]} if "init" in v else {})}
+                                    for n, v in summaries.items()},
                       "meta": run_info(cfg, seed=e.seed)})
     err = path.with_suffix(".error")
     if err.exists():
@@ -274,5 +387,11 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
         gain = f", gain {r['gain_pct']:+.2f} %" if r["gain_pct"] is not None else ""
         share = (f", {r['share_of_best_known_pct']:.0f} % of the best known"
                  if r["share_of_best_known_pct"] is not None else "")
-        print(f"[sweep] {label} {r['policy']}: {r['trips_mean']:.1f} trips{gain}{share}")
+        seeds = f" (seeds {r['seeds']})" if len(r["seeds"]) > 1 else ""
+        print(f"[sweep] {label} {r['policy']}: {r['trips_mean']:.1f} trips{gain}{share}{seeds}")
     return rows
+
+
+def _named(pol: Policy, name: str) -> Policy:
+    pol.name = name
+    return pol

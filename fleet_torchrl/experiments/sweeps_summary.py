@@ -28,7 +28,10 @@ def summarize(name: str, out: Path, expect: list[str] | None = None) -> dict:
         raise FileNotFoundError(f"no finished point in {folder}")
     param = rows[0]["param"]
     rows.sort(key=lambda r: (r["value"], r["policy"]))
-    write_csv(out / f"{name}.csv", rows, POINT_FIELDS)
+    write_csv(out / f"{name}.csv", [{**r, "seeds": " ".join(map(str, r.get("seeds", []))),
+                                     "gain_per_seed": " ".join(f"{g:.4f}" for g in
+                                                               r.get("gain_per_seed", []))}
+                                    for r in rows], POINT_FIELDS)
     summary = {"sweep": name, "param": param, "rows": rows, "failed": failed,
                "missing": missing}
     write_json(out / f"{name}.json", summary)

@@ -37,11 +37,12 @@ from ..store import load_policies, seed_dir
 from ..training import CHECKPOINT, checkpoint_mismatch, training_fingerprint
 from ..utils.plotting import plot_gain_boxplot, plot_learning_curves, save_figure
 from ..utils.runinfo import file_sha256, read_json, run_info, write_csv, write_json, write_text
+from .improvement import improvement
 
 BASELINES = ("rule", "heuristic")
 ROW_KEYS = ("policy", "objective", "seeds", "trips_mean", "trips_std", "queue_mean",
             "failure_rate", "gain_pct", "gain_ci95", "gain_min", "gain_per_seed",
-            "gain_vs_heuristic_pct", "train_time_s")
+            "gain_vs_heuristic_pct", "train_time_s", "improvement_pct", "improvement_ci95")
 
 
 def set_aside(run_dir: Path) -> Path:
@@ -185,22 +186,31 @@ def rows_markdown(rows: list[dict[str, Any]], cfg: Config) -> str:
     lines = [f"# Main comparison ({e.n_sims} simulations x {e.ticks} ticks, site "
              f"'{cfg.site.name}', evaluation seed {e.seed})", "",
              "| policy | objective | training seeds | trips | queue ticks | failure rate | "
-             "gain % vs rule | ± 95 % | per seed | vs heuristic | training time |",
-             "|---|---|---|---:|---:|---:|---:|---:|---|---:|---:|"]
+             "gain % vs rule | ± 95 % | per seed | vs heuristic | training time | "
+             "one-step improvement |",
+             "|---|---|---|---:|---:|---:|---:|---:|---|---:|---:|---:|"]
     for r in rows:
         seeds = ", ".join(map(str, r["seeds"])) or "-"
         per_seed = ", ".join(f"{g:+.2f}" for g in r["gain_per_seed"]) or "-"
         times = [t for t in r["train_time_s"] if t is not None]
         ttime = f"{max(times) / 60:.1f} min max" if times else ("n/a" if r["seeds"] else "-")
         ci = "-" if math.isnan(r["gain_ci95"]) else f"{r['gain_ci95']:.2f}"  # one seed: none
+        imp = ("-" if r.get("improvement_pct") is None else
+               f"{r['improvement_pct']:+.2f} ± {r['improvement_ci95']:.2f}")
         lines.append(f"| {r['policy']} | {r['objective'] or '-'} | {seeds} | "
                      f"{r['trips_mean']:.2f} | {r['queue_mean']:.2f} | "
                      f"{r['failure_rate']:.3f} | {r['gain_pct']:+.2f} | {ci} | "
-                     f"{per_seed} | {r['gain_vs_heuristic_pct']:+.2f} | {ttime} |")
+                     f"{per_seed} | {r['gain_vs_heuristic_pct']:+.2f} | {ttime} | {imp} |")
     lines += ["", "Gain: trips over the rule's mean on the same sites, in %. Baselines: the "
               "paired gain and its 95 % interval over the simulations. Learned rows: the mean "
               "over their training seeds, the 95 % interval across seeds (Student's t), and "
               "each seed's gain; trips, queue ticks and failure rate are means over the seeds."]
+    if cfg.table.improve_sims:
+        lines += ["", "One-step improvement: what the rollout planner (MODEL §3.6) adds when "
+                  "the row's policy is its base (learned rows: their lowest training seed), "
+                  f"on the first {cfg.table.improve_sims} simulations, in points of gain over "
+                  "the rule with the paired 95 % interval. A policy that one step improves "
+                  "significantly is not optimal on this site, by at least that much."]
     return "\n".join(lines) + "\n"
 
 
@@ -233,17 +243,33 @@ def run(cfg: Config) -> list[dict[str, Any]]:
               flush=True)
         return res
 
-    base = {name: evaluate(pol, name) for name, pol in load_policies(cfg, list(BASELINES)).items()}
+    baselines = load_policies(cfg, list(BASELINES))
+    base = {name: evaluate(pol, name) for name, pol in baselines.items()}
     rule, heur = base["rule"], base["heuristic"]
-    rows = [baseline_row(name, res, rule, heur) for name, res in base.items()]
+    planner = compose_config(["agent=planner"]).agent
+
+    def improve(row: dict[str, Any], policy, res: dict[str, Any]) -> dict[str, Any]:
+        if cfg.table.improve_sims:
+            imp = improvement(policy, res, rule, cfg.site, cfg.table.improve_sims, e.ticks,
+                              e.seed, planner, e.device)
+            print(f"[table] {row['policy']}: one step of improvement "
+                  f"{imp['improvement_pct']:+.2f} ± {imp['improvement_ci95']:.2f}", flush=True)
+            row.update(improvement_pct=imp["improvement_pct"],
+                       improvement_ci95=imp["improvement_ci95"])
+        return row
+
+    rows = [improve(baseline_row(name, res, rule, heur), baselines[name], res)
+            for name, res in base.items()]
     gains = {name: gain_over(res, rule)["per_sim_gain_pct"] for name, res in base.items()}
     for name in cfg.table.train:
-        per_seed = {}
+        per_seed, first = {}, None
         for seed in training_seeds(cfg):
             pol = load_policy_file(seed_dir(cfg.table.policies_dir, name, seed), e.device)
             per_seed[seed] = evaluate(pol, f"{name}_seed{seed}")
-        rows.append(learned_row(name, objective_of(name, cfg), per_seed, rule, heur,
-                                [times[(name, s)] for s in per_seed]))
+            first = first or pol
+        rows.append(improve(learned_row(name, objective_of(name, cfg), per_seed, rule, heur,
+                                        [times[(name, s)] for s in per_seed]),
+                            first, per_seed[min(per_seed)]))
         gains[name] = [g for res in per_seed.values()
                        for g in gain_over(res, rule)["per_sim_gain_pct"]]
     fig = plot_gain_boxplot(gains, f"trips per simulation vs rule mean ({e.n_sims} x {e.ticks}"

@@ -56,6 +56,29 @@ def plot_policy_map(policy: Policy, tcs: tuple[float, ...] | None = None,
     return fig
 
 
+def plot_decision_shares(shares: list[tuple[torch.Tensor, str, tuple[float, float]]],
+                         title: str):
+    """Panels of the share of *charge* among a state-based policy's decisions per cell
+    (``[ny, nx]``, NaN where it met no state), each with its x label and x range; y is
+    ``soc_D`` in [0, 100]. Pale = always pass, orange = always charge, blank = not visited."""
+    from matplotlib.colors import LinearSegmentedColormap
+
+    cmap = LinearSegmentedColormap.from_list("share", ["#d9e6f2", "#d95f02"])
+    cmap.set_bad("white")
+    fig, axes = plt.subplots(1, len(shares), figsize=(3.4 * len(shares) + 0.8, 3.1),
+                             sharey=True, squeeze=False)
+    im = None
+    for ax, (m, xlabel, (x0, x1)) in zip(axes[0], shares, strict=True):
+        im = ax.imshow(m.numpy(), origin="lower", extent=(x0, x1, 0, 100), cmap=cmap, vmin=0,
+                       vmax=1, aspect="auto", interpolation="nearest")
+        ax.set_xlabel(xlabel)
+    axes[0][0].set_ylabel("soc at D")
+    if im is not None:
+        fig.colorbar(im, ax=axes[0].tolist(), shrink=0.85, label="share of charge decisions")
+    fig.suptitle(title, fontsize=10)
+    return fig
+
+
 def save_figure(fig, path: str | Path) -> Path:
     path = Path(path)
     out = atomic_write(path, lambda f: fig.savefig(f, format=path.suffix.lstrip(".") or "png",

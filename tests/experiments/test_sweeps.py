@@ -29,6 +29,19 @@ TINY_SEARCH = _searches(search_threshold=["agent.policy_class=threshold"],
                         search_table=["agent.policy_class=table", "agent.tc_bins=4"])
 TINY_PICK = ["sweep.pick_sims=8", "sweep.pick_ticks=300",
              "sweep.planner_overrides=['agent.rollouts=2','agent.horizon=20']"]
+# the specialists' recipes (table.train's), tiny; two seeds at p_c=0.8, one elsewhere
+def _recipe(name: str, *overrides: str) -> str:
+    return f"table.train.{name}=[" + ",".join(f"'{o}'" for o in overrides) + "]"
+
+
+TINY_LEARN = ("train.eval_every=1", "train.eval_sims=8", "train.eval_ticks=300", "mdp.tau_e=300")
+TINY_SPECIALISTS = [
+    _recipe("tabular", "agent=tabular", "agent.num_sites=8", "train.max_episodes=16",
+            *TINY_LEARN),
+    _recipe("dqn_partial", "agent=dqn", "state=partial", "agent.num_sites=2",
+            "agent.steps_per_round=10", "agent.updates_per_round=2", "train.max_episodes=4",
+            *TINY_LEARN),
+    "sweep.more_seeds_at=['p_c=0.8']", "sweep.more_seeds=2"]
 
 
 def test_search_starts_from_the_points_best_partial_policy(saved_policies):
@@ -66,8 +79,12 @@ def test_search_starts_from_the_points_best_partial_policy(saved_policies):
 
 
 def test_best_known_is_the_best_row_on_the_pick_set():
-    from fleet_torchrl.experiments.sweeps import best_of
+    from fleet_torchrl.experiments.sweeps import best_of, is_learned
 
+    assert is_learned("dqn_all") and is_learned("specialist_dqn") and is_learned("generalist")
+    assert not any(is_learned(n) for n in ("rule", "heuristic", "threshold", "search",
+                                           "search_threshold", "planner", "planner_dqn_all",
+                                           "best_known"))
     # keys: (failure rate, -mean trips), lower is better; on a tie the first row
     assert best_of({"planner": (0.0, -100.0), "dqn": (0.0, -101.0)}) == "dqn"
     assert best_of({"dqn": (0.0, -100.0), "planner": (0.0, -100.0)}) == "dqn"
@@ -94,6 +111,7 @@ def test_miniature_sweep_end_to_end(tmp_path, saved_policies):
            "sweep.value=0.4,0.8", "eval.n_sims=16", "eval.ticks=400",
            "sweep.policies=[rule,heuristic,tabular,dqn_partial,search]",
            f"table.policies_dir={root}", f"sweep.out={out}", TINY_SEARCH, *TINY_PICK,
+           *TINY_SPECIALISTS,
            f"sweep.search_dir={tmp_path / 'search'}",
            f"hydra.sweep.dir={tmp_path / 'multirun'}"]
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
@@ -101,13 +119,14 @@ def test_miniature_sweep_end_to_end(tmp_path, saved_policies):
     assert sorted(p.name for p in (out / "pc").glob("*.json")) == ["p_c=0.4.json", "p_c=0.8.json"]
     assert sweeps_summary.main(["pc", "--out", str(out), "--expect", "p_c=0.4", "p_c=0.8"]) == 0
     rows = list(csv.DictReader((out / "pc.csv").open()))
-    assert set(rows[0]) == {"param", "value", "policy", "trips_mean", "trips_std", "queue_mean",
-                            "failure_rate", "gain_pct", "gain_ci95", "share_of_best_known_pct"}
+    assert set(rows[0]) == {"param", "value", "policy", "seeds", "trips_mean", "trips_std",
+                            "queue_mean", "failure_rate", "failure_rate_max", "gain_pct",
+                            "gain_ci95", "gain_per_seed", "share_of_best_known_pct"}
     names = {"rule", "heuristic", "tabular", "dqn_partial", "search", "search_threshold",
-             "search_table", "planner", "best_known"}
-    assert {r["policy"] for r in rows} - names == {"planner_tabular"} or \
-        {r["policy"] for r in rows} - names == {"planner_dqn_partial"}
-    assert len(rows) == 2 * 10
+             "search_table", "specialist_dqn", "specialist_tabular", "planner", "best_known"}
+    extra = {r["policy"] for r in rows} - names
+    assert len(extra) == 1 and extra.pop().startswith("planner_"), extra
+    assert len(rows) == 2 * 12
     assert all(float(r["gain_pct"]) == 0.0 for r in rows if r["policy"] == "rule")
     for r in rows:  # the share is the gain over best_known's gain, where that is positive
         best = next(float(o["gain_pct"]) for o in rows
@@ -117,23 +136,38 @@ def test_miniature_sweep_end_to_end(tmp_path, saved_policies):
                 100 * float(r["gain_pct"]) / best, rel=1e-9)
         else:
             assert r["share_of_best_known_pct"] == ""
+    # the specialists: one seed at p_c=0.4, two at p_c=0.8 (sweep.more_seeds_at), each row
+    # the mean over its seeds with every seed's gain
+    spec = {r["value"]: r for r in rows if r["policy"] == "specialist_dqn"}
+    assert spec["0.4"]["seeds"] == "0" and spec["0.8"]["seeds"] == "0 1"
+    per_seed = [float(g) for g in spec["0.8"]["gain_per_seed"].split()]
+    assert float(spec["0.8"]["gain_pct"]) == pytest.approx(sum(per_seed) / 2, abs=1e-3)
     # each point searched its own site, each class apart: cached, keyed by their settings
     found = sorted(str(p.relative_to(tmp_path / "search").parent.parent)
                    for p in (tmp_path / "search").glob("*/*/*/policy.pt"))
     assert found == ["p_c=0.4/search_table", "p_c=0.4/search_threshold",
                      "p_c=0.8/search_table", "p_c=0.8/search_threshold"], found
+    found = sorted(str(p.relative_to(tmp_path / "search").parent.parent)
+                   for p in (tmp_path / "search").glob("*/specialist_*/*/*/policy.pt"))
+    assert found == ["p_c=0.4/specialist_dqn/seed0", "p_c=0.4/specialist_tabular/seed0",
+                     "p_c=0.8/specialist_dqn/seed0", "p_c=0.8/specialist_dqn/seed1",
+                     "p_c=0.8/specialist_tabular/seed0", "p_c=0.8/specialist_tabular/seed1"]
     assert (out / "pc.png").stat().st_size > 1000 and (out / "pc.json").exists()
     point = json.loads((out / "pc" / "p_c=0.8.json").read_text())
-    assert point["searches"]["search_table"]["init"] in (
+    assert point["guard"] is True
+    assert point["trainings"]["search_table"]["init"] in (
         "rule", "heuristic", str(root / "tabular" / "policy.pt"),
         str(root / "dqn_partial" / "policy.pt"))
     # best_known is the row that does best on the pick set, evaluated on the same sites
-    src = point["best_known"]["from"]
-    pick = point["best_known"]["pick_set"]
+    bk = point["best_known"]
+    src = bk["from"] if bk["seed"] is None else f"{bk['from']}_seed{bk['seed']}"
+    pick = bk["pick_set"]
     assert src in pick and all((pick[src]["failure_rate"], -pick[src]["trips_mean"])
                                <= (p["failure_rate"], -p["trips_mean"]) for p in pick.values())
     trips = {r["policy"]: r["trips_mean"] for r in point["rows"]}
-    assert trips["best_known"] == trips[src]
+    if bk["seed"] is None or len([r for r in point["rows"] if r["policy"] == bk["from"]][0]
+                                 ["seeds"]) == 1:
+        assert trips["best_known"] == trips[bk["from"]]
     # a rerun skips the finished points; a point that cannot run is reported, not fatal
     r2 = subprocess.run(cmd[:5] + ["sweep.value=0.8"] + cmd[6:], capture_output=True,
                         text=True, timeout=300)
@@ -141,7 +175,7 @@ def test_miniature_sweep_end_to_end(tmp_path, saved_policies):
     # other evaluation settings: the point is recomputed, its search reused
     r4 = subprocess.run(cmd[:5] + ["sweep.value=0.8", "eval.n_sims=12"] + cmd[7:],
                         capture_output=True, text=True, timeout=300)
-    assert "recomputing" in r4.stdout and "reusing the search" in r4.stdout, r4.stdout
+    assert "recomputing" in r4.stdout and "reusing" in r4.stdout, r4.stdout
     assert all(r["trips_mean"] > 0 for r in
                json.loads((out / "pc" / "p_c=0.8.json").read_text())["rows"])
     bad = cmd[:5] + ["sweep.value=0.6"] + [c for c in cmd[6:] if "policies_dir" not in c] + [
@@ -161,6 +195,7 @@ def test_miniature_sweep_through_submitit(tmp_path):
            "hydra/launcher=submitit_local", "hydra.launcher.timeout_min=5",
            "sweep.value=0.4,0.8", "eval.n_sims=8", "eval.ticks=300",
            "sweep.policies=[rule,heuristic]", "sweep.search=false", "sweep.planner=false",
+           "sweep.specialist=false",
            f"sweep.out={out}",
            f"hydra.sweep.dir={tmp_path / 'multirun'}"]
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
@@ -183,6 +218,7 @@ def test_miniature_sweep_through_ray(tmp_path):
            "+hydra.launcher.ray.init.include_dashboard=false",
            "sweep.value=0.4,0.8", "eval.n_sims=8", "eval.ticks=300",
            "sweep.policies=[rule,heuristic]", "sweep.search=false", "sweep.planner=false",
+           "sweep.specialist=false",
            f"sweep.out={out}",
            f"hydra.sweep.dir={tmp_path / 'multirun'}"]
     ray_tmp = tempfile.mkdtemp(prefix="ray", dir="/tmp")  # Ray's socket paths must be short

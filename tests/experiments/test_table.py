@@ -18,7 +18,7 @@ def test_table_end_to_end(tmp_path):
     from fleet_torchrl.experiments.table import run
 
     cfg = compose_config(["eval.n_sims=24", "eval.ticks=600", "eval.progress=false",
-                          "table.seeds=2", "table.jobs=2",
+                          "table.seeds=2", "table.jobs=2", "table.improve_sims=4",
                           f"table.out={tmp_path}/table", f"table.policies_dir={tmp_path}/pol",
                           f"table.runs_dir={tmp_path}/runs"])
     cfg.table.train = {
@@ -47,6 +47,10 @@ def test_table_end_to_end(tmp_path):
         assert res["seed"] == cfg.eval.seed and res["n_sims"] == 24
     assert len(list(csv.DictReader((out / "table.csv").open()))) == 4
     assert "± 95 %" in (out / "table.md").read_text()
+    # one step of policy improvement over every row, paired on the first sites
+    assert all(isinstance(r["improvement_pct"], float) and r["improvement_ci95"] >= 0
+               for r in table)
+    assert "One-step improvement" in (out / "table.md").read_text()
     # a second run reuses the saved policies (same recorded configuration)
     pol = tmp_path / "pol" / "tabular" / "seed1" / "policy.pt"
     mtime = pol.stat().st_mtime
