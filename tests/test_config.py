@@ -120,7 +120,7 @@ def test_unknown_keys_added_with_plus_are_rejected():
     ("site.n_vehicles=abc", "error: Error merging override site.n_vehicles=abc: Value 'abc' of "
                             "type 'str' could not be converted to Integer"),
     ("agent=nope", "error: In 'config': Could not find 'agent/nope'; allowed in 'agent': dqn, "
-                   "heuristic, planner, rule, search, tabular, threshold"),
+                   "heuristic, imitation, planner, rule, search, tabular, threshold"),
     ("+site.pc=0.5", "error: site.pc is not a setting of site (allowed: closed_node, e_charge, "
                      "e_idle, e_move, leave_when_full, n_nodes, n_vehicles, name, p_c, ranges, "
                      "soc_low, t_c, xi)"),
@@ -151,7 +151,7 @@ def test_help_lists_only_real_options():
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     groups = r.stdout.split("== Config ==")[0]
-    assert "agent: dqn, heuristic, planner, rule, search, tabular, threshold" in groups
+    assert "agent: dqn, heuristic, imitation, planner, rule, search, tabular, threshold" in groups
     assert "schema" not in groups and "base_" not in groups
 
 

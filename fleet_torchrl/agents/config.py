@@ -9,8 +9,9 @@ completion, Hydra's ConfigStore) imports neither torch nor TorchRL: a command an
 
 from __future__ import annotations
 
+import hashlib
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from ..utils.checks import ConfigError, check_choice, check_range
@@ -319,13 +320,78 @@ class PlannerAgentConfig(AgentConfig):
         return self
 
 
+@dataclass
+class ImitationAgentConfig(AgentConfig):
+    """DAgger distillation of the rollout planner (agents/imitation.py)."""
+
+    name: str = "imitation"
+    num_sites: int = 256  # sites in parallel: one environment step = num_sites labels
+    steps_per_round: int = 20  # decisions per site and round (episodes run on across rounds)
+    rounds: int = 40  # rounds of the training loop (train.max_episodes does not apply)
+    expert: PlannerAgentConfig = field(default_factory=PlannerAgentConfig)  # the teacher
+    beta_start: float = 1.0  # probability of acting with the expert in round 0
+    beta_end: float = 0.0  # ... falling linearly to this
+    beta_rounds: int = 5  # ... over this many rounds (then it stays at beta_end)
+    capacity: int = 500_000  # labelled states kept (all rounds aggregated; oldest go first)
+    hidden: int = 128  # units per hidden layer of the student network
+    depth: int = 3  # hidden layers (ReLU)
+    lr: float = 1e-3  # Adam learning rate
+    lr_final: float = 1.0  # cosine decay of lr over the run's gradient steps to this share
+    weight_decay: float = 0.0  # Adam L2
+    updates_per_round: int = 200  # gradient steps after each round
+    batch_size: int = 512  # pairs per gradient step
+    policy: str | None = None  # saved policy for evaluation (default results/policies/<name>)
+
+    def validate(self, cfg: Any = None, path: str = "agent") -> ImitationAgentConfig:
+        check_range(f"{path}.num_sites", self.num_sites, 1, 1_000_000)
+        check_range(f"{path}.steps_per_round", self.steps_per_round, 1, 1_000_000)
+        check_range(f"{path}.rounds", self.rounds, 1, 1_000_000)
+        self.expert.validate(cfg, f"{path}.expert")
+        check_range(f"{path}.beta_start", self.beta_start, 0.0, 1.0)
+        check_range(f"{path}.beta_end", self.beta_end, 0.0, self.beta_start,
+                    allowed=f"[0, beta_start = {self.beta_start}]")
+        check_range(f"{path}.beta_rounds", self.beta_rounds, 1, 1_000_000)
+        check_range(f"{path}.capacity", self.capacity, 1, 100_000_000)
+        check_range(f"{path}.hidden", self.hidden, 1, 4096)
+        check_range(f"{path}.depth", self.depth, 0, 16)
+        check_range(f"{path}.lr", self.lr, 1e-12, 1.0, allowed="(0, 1]")
+        check_range(f"{path}.lr_final", self.lr_final, 0.0, 1.0)
+        check_range(f"{path}.weight_decay", self.weight_decay, 0.0, 10.0)
+        check_range(f"{path}.updates_per_round", self.updates_per_round, 0, 1_000_000)
+        check_range(f"{path}.batch_size", self.batch_size, 1, self.capacity,
+                    allowed=f"[1, capacity = {self.capacity}]")
+        return self
+
+    def beta(self, round_idx: int) -> float:
+        """Probability of acting with the expert in round ``round_idx`` (0-based)."""
+        frac = min(round_idx / self.beta_rounds, 1.0)
+        return self.beta_start + (self.beta_end - self.beta_start) * frac
+
+    def training_rounds(self, train: Any) -> int:
+        return self.rounds
+
+    def objective(self, mdp: Any) -> str:
+        return "trips"  # the planner maximises trips, whatever mdp.reward says
+
+    def run_suffix(self, mdp: Any) -> str:
+        """Nothing for the default teacher (the planner over the heuristic); ``_over_<base>``
+        for another base (a saved policy: ``_over_policy-<8 hex digits of its path>``)."""
+        base = self.expert.base
+        if base == "heuristic":
+            return ""
+        if base in BASELINE_BASES:
+            return f"_over_{base}"
+        return f"_over_policy-{hashlib.sha256(base.encode()).hexdigest()[:8]}"
+
+
 # agent name -> its schema; the registry (agents/registry.py) adds the builders
 AGENT_SCHEMAS: dict[str, type[AgentConfig]] = {
     "rule": RuleAgentConfig, "heuristic": HeuristicAgentConfig,
     "threshold": ThresholdAgentConfig, "planner": PlannerAgentConfig,
-    "tabular": TabularAgentConfig, "dqn": DQNAgentConfig, "search": SearchAgentConfig}
+    "tabular": TabularAgentConfig, "dqn": DQNAgentConfig, "search": SearchAgentConfig,
+    "imitation": ImitationAgentConfig}
 
 __all__ = ["AGENT_SCHEMAS", "ANCHORS", "ANCHOR_STATES", "BASELINE_BASES", "INITS", "LR_DECAYS",
            "POLICY_CLASSES", "AgentConfig", "DQNAgentConfig", "HeuristicAgentConfig",
-           "NetworkConfig", "PlannerAgentConfig", "RuleAgentConfig", "SearchAgentConfig",
-           "TabularAgentConfig", "ThresholdAgentConfig"]
+           "ImitationAgentConfig", "NetworkConfig", "PlannerAgentConfig", "RuleAgentConfig",
+           "SearchAgentConfig", "TabularAgentConfig", "ThresholdAgentConfig"]

@@ -29,6 +29,7 @@ from .config import (
     AgentConfig,
     DQNAgentConfig,
     HeuristicAgentConfig,
+    ImitationAgentConfig,
     PlannerAgentConfig,
     RuleAgentConfig,
     SearchAgentConfig,
@@ -36,6 +37,7 @@ from .config import (
     ThresholdAgentConfig,
 )
 from .dqn import DQNLearner, DQNPolicy
+from .imitation import ImitationLearner, ImitationPolicy
 from .planner import PlannerPolicy
 from .policy_files import POLICY_FILE, read_policy_file
 from .search import SearchLearner, SearchPolicy
@@ -58,6 +60,7 @@ class LearnerContext:
     device: torch.device
     n_obs: int
     action_spec: Any  # the environment's action spec
+    env: Any = None  # the training environment (a learner that labels its states reads it)
 
 
 @dataclass(frozen=True)
@@ -149,6 +152,18 @@ register(AgentSpec("tabular", TabularAgentConfig, TabularQPolicy, make_learner=_
 register(AgentSpec("dqn", DQNAgentConfig, DQNPolicy, make_learner=_dqn_learner))
 register(AgentSpec("search", SearchAgentConfig, SearchPolicy, make_learner=_search_learner,
                    states=("partial",)))
+
+
+def _imitation_learner(c: LearnerContext) -> Learner:
+    if c.env is None:
+        raise ValueError("agent=imitation labels the states of the training environment: "
+                         "build it with LearnerContext(env=...)")
+    expert = _planner(c.agent.expert).to(c.device)
+    return ImitationLearner(c.agent, expert, c.env, c.n_obs, c.state, c.seed, c.device)
+
+
+register(AgentSpec("imitation", ImitationAgentConfig, ImitationPolicy,
+                   make_learner=_imitation_learner, states=("partial", "partial_site")))
 
 
 # ------------------------------------------------------------------------ lookups

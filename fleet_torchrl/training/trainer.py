@@ -174,7 +174,8 @@ class Trainer:
         self.learner = self.spec.make_learner(LearnerContext(
             agent=c.agent, network=c.network, mdp=c.mdp, site=c.site, state=c.state.name,
             seed=c.seed, rounds=self.n_rounds, device=env.device,
-            n_obs=env.observation_spec["observation"].shape[-1], action_spec=env.action_spec))
+            n_obs=env.observation_spec["observation"].shape[-1], action_spec=env.action_spec,
+            env=env))
         self.best_policy = copy.deepcopy(self.policy()).cpu()
 
     def setup_evaluation(self) -> None:
