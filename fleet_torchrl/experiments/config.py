@@ -72,7 +72,7 @@ class TableConfig:
     # one step of policy improvement over every row (the rollout planner, agent=planner
     # defaults, with the row's policy as base; learned rows: their lowest seed), on the
     # first improve_sims sites of the evaluation; 0 = skip
-    improve_sims: int = 200
+    improve_sims: int = 30
     only: list[str] | None = None  # some of the recipes (e.g. [dqn_partial,search]); null: all
     preview: bool = False  # append each recipe's preview budget (make quick)
 
@@ -127,15 +127,18 @@ class SweepConfig:
     # learned policies act with the policy-independent safety guard (agents/base.py:
     # GuardedPolicy, charge below the site's reserve floor), reported as such
     guard: bool = True
-    # the rollout planner (agent=planner, overrides of its settings), base the heuristic,
-    # and the one-step improvement of these policies ("best_learned": the best learned
-    # policy of sweep.policies on the pick set): rows planner, planner_<name>
+    # the rollout planner (agent=planner, overrides of its settings), base the heuristic
+    # (row planner); and what one step of policy improvement adds to these policies
+    # ("best_learned": the best learned row on the pick set; "best": the best row), the
+    # planner over each on the first improve_sims sites of the evaluation, paired with its
+    # own records (columns improvement_*; the heuristic's from the planner row, every site)
     planner: bool = True
     planner_overrides: list[str] = field(default_factory=list)
     improve: list[str] = field(default_factory=lambda: ["best_learned"])
+    improve_sims: int = 30
     # the set best_known is picked on (the searches' selection seed, apart from eval.seed):
     # the best of every row above and every policy
-    pick_sims: int = 500
+    pick_sims: int = 200
     pick_ticks: int = 10_000
     search_dir: str = "results/search"
 
@@ -143,6 +146,7 @@ class SweepConfig:
         check_choice(f"{path}.param", self.param, SWEEP_PARAMS)
         check_range(f"{path}.pick_sims", self.pick_sims, 1, 10**7)
         check_range(f"{path}.pick_ticks", self.pick_ticks, 1, 10**8)
+        check_range(f"{path}.improve_sims", self.improve_sims, 0, 10**7)
         for label, overrides in self.searches.items():
             if not label.startswith("search"):
                 raise ConfigError(f"{path}.searches.{label}={list(overrides)} is invalid: "

@@ -58,6 +58,21 @@ def _sweep_pivot(rows: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def _improvement_table(rows: list[dict[str, Any]]) -> str:
+    rows = [r for r in rows if r.get("improvement_pct") is not None]
+    if not rows:
+        return ""
+    lines = [f"| {rows[0]['param']} | policy | one-step improvement | sites |",
+             "|---:|---|---:|---:|"]
+    for r in sorted(rows, key=lambda r: (r["value"], r["policy"])):
+        ci = "" if r.get("improvement_ci95") is None else f" ± {r['improvement_ci95']:.2f}"
+        seed = f" (seed {r['improvement_seed']})" if r.get("improvement_seed") is not None \
+            else ""
+        lines.append(f"| {r['value']} | {r['policy']}{seed} | {r['improvement_pct']:+.2f}{ci} "
+                     f"| {r.get('improvement_sims')} |")
+    return "\n".join(lines)
+
+
 def build(results: Path, out: Path) -> str:
     report_dir = out.parent
     figures = report_dir / "figures"
@@ -114,8 +129,7 @@ def build(results: Path, out: Path) -> str:
               "site distribution, MODEL §3.5), evaluated on changed sites, beside the point's "
               "own searches (`search_threshold`, `search_table`: MODEL §3.4, classes that "
               "read the charger's remaining time), the rollout planner over the heuristic "
-              "(`planner`, MODEL §3.6) and over the point's best learned policy "
-              "(`planner_<name>`: what one step of policy improvement adds to it), and "
+              "(`planner`, MODEL §3.6), and "
               "`best_known`: the best of all of them on the point's pick set (sites apart "
               "from the evaluation's; MODEL §5). "
               "Cells: trips gain over the rule in % ± 95% CI, in brackets the share of "
@@ -134,6 +148,13 @@ def build(results: Path, out: Path) -> str:
                 parts += [f"{ev['n_sims']} simulations x {ev['ticks']} ticks per point, "
                           f"seed {ev['seed']}.", ""]
         parts += [_sweep_pivot(s["rows"]), ""]
+        imp = _improvement_table(s["rows"])
+        if imp:
+            parts += ["One step of policy improvement (the planner over the policy, paired "
+                      "with its own records on the first sites of the evaluation; the "
+                      "heuristic's is the `planner` row on every site), in points of gain over "
+                      "the rule ± 95% CI: where it is significantly positive the policy is not "
+                      "optimal on that site.", "", imp, ""]
         png = results / "sweeps" / f"{name}.png"
         if png.exists():
             parts += [f"![sweep {name}]({_copy(png, figures, f'sweep_{name}.png', report_dir)})",

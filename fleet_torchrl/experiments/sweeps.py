@@ -21,10 +21,13 @@ sites):
   policy classes that read the charger's remaining time), each started from the best start
   of its class among the rule, the heuristic and every saved policy (``sweep.search_seeded``)
   and cached under ``sweep.search_dir/<point>/<key>`` by its training settings and start;
-* the rollout planner (MODEL §3.6) with the heuristic as base (row ``planner``), and one
-  step of policy improvement over each policy of ``sweep.improve`` (``best_learned``: the
-  best learned policy of the point) (rows ``planner_<name>``): how far each is from the
-  best its site allows;
+* the rollout planner (MODEL §3.6) with the heuristic as base (row ``planner``); and what
+  one step of policy improvement adds to each policy of ``sweep.improve`` (``best_learned``:
+  the best learned row of the point): the planner over it on the first
+  ``sweep.improve_sims`` sites of the evaluation, paired with its own records (columns
+  ``improvement_*``; the heuristic's is the planner row, paired on every site). A network
+  base costs the planner milliseconds per decision (its rollouts' arrivals are decided by
+  forward passes), hence a subset of the sites, and no row of its own;
 * ``best_known``: of all the rows above, the best on the point's *pick set* (the searches'
   selection seed ``train.eval_seed`` with ``sweep.pick_sims`` x ``sweep.pick_ticks``, never
   the evaluation's sites): fewer failed simulations first, then more trips. Every row
@@ -48,6 +51,8 @@ from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
+import torch
+
 from ..agents import AGENTS, load_policy_file
 from ..agents.base import GuardedPolicy, Policy
 from ..agents.baselines import HeuristicPolicy
@@ -56,16 +61,20 @@ from ..agents.policy_files import POLICY_FILE
 from ..agents.search import SearchPolicy, cell_centres, clone_policy, threshold_start
 from ..config import Config, compose_config
 from ..evaluation import evaluate_policy, evaluate_with, gain_over, seed_interval
+from ..evaluation.results import t95
 from ..sim import SiteConfig
 from ..store import load_policies, saved_policy_path
 from ..training import Trainer, training_fingerprint
 from ..utils.checks import ConfigError
 from ..utils.runinfo import file_sha256, read_json, run_info, to_jsonable, write_json
+from .improvement import improvement
 from .table import reusable
 
 POINT_FIELDS = ("param", "value", "policy", "seeds", "trips_mean", "trips_std", "queue_mean",
                 "failure_rate", "failure_rate_max", "gain_pct", "gain_ci95", "gain_per_seed",
-                "share_of_best_known_pct")
+                "share_of_best_known_pct", "improvement_pct", "improvement_ci95",
+                "improvement_sims", "improvement_seed")
+IMPROVEMENT_FIELDS = POINT_FIELDS[-4:]
 BEST_KNOWN = "best_known"  # the row of the best policy known at the point
 PLANNER = "planner"  # the rollout planner over the heuristic
 
@@ -206,7 +215,7 @@ def point_key(cfg: Config, site: SiteConfig, search_cfgs: dict[str, Config],
         "guard": s.guard, "seeds": "every seed of the learned policies",
         "search_seeded": s.search_seeded, "pick": [s.pick_sims, s.pick_ticks],
         "planner": asdict(planner_config(cfg)) if s.planner else None,
-        "improve": list(s.improve),
+        "improve": [list(s.improve), s.improve_sims],
         "best_known": "best of every row on the pick set (failures, then trips)"}
     return digest(parts)
 
@@ -320,22 +329,6 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
     if cfg.sweep.planner:
         groups[PLANNER] = {None: make_planner(cfg, HeuristicPolicy())}
         keys[(PLANNER, None)] = on_pick_set(cfg, site, groups[PLANNER][None])
-        improved = set()
-        for want in cfg.sweep.improve:
-            pool = {k: v for k, v in keys.items() if not k[0].startswith(PLANNER)}
-            if want == "best_learned":
-                pool = {k: v for k, v in pool.items() if is_learned(k[0])}
-            elif want != "best":
-                pool = {k: v for k, v in pool.items() if k[0] == want}
-            if not pool:
-                continue
-            name, seed = best_of(pool)
-            if name == "heuristic" or (name, seed) in improved:
-                continue  # the heuristic's is the planner row itself
-            improved.add((name, seed))
-            row = f"{PLANNER}_{name}"
-            groups[row] = {None: make_planner(cfg, groups[name][seed])}
-            keys[(row, None)] = on_pick_set(cfg, site, groups[row][None])
     best = best_of(keys)
     print(f"[sweep] {label}: best known is {best[0]}"
           + (f" seed {best[1]}" if best[1] is not None else "")
@@ -343,6 +336,7 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
     results = {(n, s): evaluate_with(p, site, e, name=n if s is None else f"{n}_seed{s}")
                for n, g in groups.items() for s, p in g.items()}
     rule = results[("rule", None)] if ("rule", None) in results else None
+    improved = one_step(cfg, site, groups, keys, results, rule)
     rows = []
     for name, g in groups.items():
         if list(g) == [None]:
@@ -356,11 +350,13 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
                          "gain_pct": gn["gain_pct"], "gain_ci95": gn["gain_ci95"]})
         else:
             rows.append(seed_row(name, {s: results[(name, s)] for s in g}, rule))
+    for r in rows:
+        r.update(improved.get(r["policy"], dict.fromkeys(IMPROVEMENT_FIELDS)))
     top_res = results[best]
     g_top = gain_over(top_res, rule) if rule is not None else {"gain_pct": None,
                                                               "gain_ci95": None}
     rows.append({"policy": BEST_KNOWN, "seeds": [] if best[1] is None else [best[1]],
-                 "gain_per_seed": [],
+                 "gain_per_seed": [], **dict.fromkeys(IMPROVEMENT_FIELDS),
                  **{k: top_res[k] for k in ("trips_mean", "trips_std", "queue_mean",
                                             "failure_rate")},
                  "failure_rate_max": top_res["failure_rate"],
@@ -390,6 +386,54 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
         seeds = f" (seeds {r['seeds']})" if len(r["seeds"]) > 1 else ""
         print(f"[sweep] {label} {r['policy']}: {r['trips_mean']:.1f} trips{gain}{share}{seeds}")
     return rows
+
+
+def one_step(cfg: Config, site: SiteConfig, groups: dict[str, dict[int | None, Policy]],
+             keys: dict[tuple[str, int | None], tuple[float, float]],
+             results: dict[tuple[str, int | None], dict[str, Any]],
+             rule: dict[str, Any] | None) -> dict[str, dict[str, Any]]:
+    """What one step of policy improvement adds to the policies of ``sweep.improve`` (the
+    best learned row's best seed on the pick set, ...): the planner over it on the first
+    ``sweep.improve_sims`` sites of the evaluation, paired with its own records, in points
+    of gain over the rule (:func:`~fleet_torchrl.experiments.improvement.improvement`). The
+    heuristic's is the planner row itself, paired on every site. ``{row: improvement_*}``."""
+    out: dict[str, dict[str, Any]] = {}
+    if not cfg.sweep.planner or rule is None:
+        return out
+    rule_trips = torch.tensor(rule["records"]["trips"], dtype=torch.float64)
+    if ("heuristic", None) in results:
+        d = 100.0 * (torch.tensor(results[(PLANNER, None)]["records"]["trips"],
+                                  dtype=torch.float64)
+                     - torch.tensor(results[("heuristic", None)]["records"]["trips"],
+                                    dtype=torch.float64)) / float(rule_trips.mean())
+        n = d.numel()
+        out["heuristic"] = {"improvement_pct": float(d.mean()), "improvement_sims": n,
+                            "improvement_ci95": t95(n - 1) * float(d.std()) / n ** 0.5
+                            if n > 1 else None, "improvement_seed": None}
+    if not cfg.sweep.improve_sims:
+        return out
+    for want in cfg.sweep.improve:
+        pool = {k: v for k, v in keys.items() if not k[0].startswith((PLANNER, BEST_KNOWN))}
+        if want == "best_learned":
+            pool = {k: v for k, v in pool.items() if is_learned(k[0])}
+        elif want != "best":
+            pool = {k: v for k, v in pool.items() if k[0] == want}
+        if not pool:
+            continue
+        name, seed = best_of(pool)
+        if name in out:
+            continue
+        imp = improvement(groups[name][seed], results[(name, seed)], rule, site,
+                          cfg.sweep.improve_sims, cfg.eval.ticks, cfg.eval.seed,
+                          planner_config(cfg), cfg.eval.device)
+        out[name] = {"improvement_pct": imp["improvement_pct"],
+                     "improvement_ci95": imp["improvement_ci95"],
+                     "improvement_sims": imp["sims"],
+                     "improvement_seed": seed}
+        print(f"[sweep] {site.name} {name}" + (f" seed {seed}" if seed is not None else "")
+              + f": one step of improvement {imp['improvement_pct']:+.2f} "
+              f"± {imp['improvement_ci95']:.2f} ({imp['sims']} sites)", flush=True)
+    return out
 
 
 def _named(pol: Policy, name: str) -> Policy:

@@ -27,7 +27,7 @@ def _searches(**classes: list[str]) -> str:
 
 TINY_SEARCH = _searches(search_threshold=["agent.policy_class=threshold"],
                         search_table=["agent.policy_class=table", "agent.tc_bins=4"])
-TINY_PICK = ["sweep.pick_sims=8", "sweep.pick_ticks=300",
+TINY_PICK = ["sweep.pick_sims=8", "sweep.pick_ticks=300", "sweep.improve_sims=4",
              "sweep.planner_overrides=['agent.rollouts=2','agent.horizon=20']"]
 # the specialists' recipes (conf/recipes), tiny; two seeds at p_c=0.8, one elsewhere
 def _recipe(name: str, *overrides: str) -> str:
@@ -126,13 +126,27 @@ def test_miniature_sweep_end_to_end(tmp_path, saved_policies, command):
     rows = list(csv.DictReader((out / "pc.csv").open()))
     assert set(rows[0]) == {"param", "value", "policy", "seeds", "trips_mean", "trips_std",
                             "queue_mean", "failure_rate", "failure_rate_max", "gain_pct",
-                            "gain_ci95", "gain_per_seed", "share_of_best_known_pct"}
+                            "gain_ci95", "gain_per_seed", "share_of_best_known_pct",
+                            "improvement_pct", "improvement_ci95", "improvement_sims",
+                            "improvement_seed"}
     names = {"rule", "heuristic", "tabular", "dqn_partial", "search", "search_threshold",
              "search_table", "specialist_dqn", "specialist_tabular", "specialist_imitation",
              "planner", "best_known"}
-    extra = {r["policy"] for r in rows} - names
-    assert len(extra) == 1 and extra.pop().startswith("planner_"), extra
-    assert len(rows) == 2 * 13
+    assert {r["policy"] for r in rows} == names
+    assert len(rows) == 2 * 12
+    # one step of improvement: the heuristic's from the planner row on every site, the best
+    # learned row's on the first sweep.improve_sims sites; no other row has one
+    for v in ("0.4", "0.8"):
+        imp = {r["policy"]: r for r in rows if r["value"] == v and r["improvement_pct"]}
+        assert imp["heuristic"]["improvement_sims"] == "16", imp["heuristic"]
+        heur = next(r for r in rows if r["value"] == v and r["policy"] == "heuristic")
+        plan = next(r for r in rows if r["value"] == v and r["policy"] == "planner")
+        assert float(heur["improvement_pct"]) == pytest.approx(
+            100 * (float(plan["trips_mean"]) - float(heur["trips_mean"]))
+            / next(float(r["trips_mean"]) for r in rows
+                   if r["value"] == v and r["policy"] == "rule"), abs=1e-6)
+        learned = set(imp) - {"heuristic"}
+        assert len(learned) == 1 and imp[learned.pop()]["improvement_sims"] == "4"
     assert all(float(r["gain_pct"]) == 0.0 for r in rows if r["policy"] == "rule")
     for r in rows:  # the share is the gain over best_known's gain, where that is positive
         best = next(float(o["gain_pct"]) for o in rows
