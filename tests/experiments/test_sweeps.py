@@ -44,6 +44,7 @@ TINY_SPECIALISTS = [
     _recipe("imitation", "agent=imitation", "state=partial", "agent.num_sites=4",
             "agent.steps_per_round=5", "agent.rounds=2", "agent.updates_per_round=2",
             "agent.expert.rollouts=2", "agent.expert.horizon=20", *TINY_LEARN),
+    "+sweep.specialists.specialist_imitation=imitation",  # not a default row: opted in
     "sweep.more_seeds_at=['p_c=0.8']", "sweep.more_seeds=2"]
 
 
