@@ -43,8 +43,9 @@ class MDPConfig:
 
         check_range(f"{path}.tau_e", self.tau_e, 1, 10**9)
         check_choice(f"{path}.reward", self.reward, tuple(OBJECTIVES))
-        check_range(f"{path}.p_f", self.p_f, 0.0, None)
-        check_range(f"{path}.p_q", self.p_q, 0.0, None)
+        # rewards are float32: a cost beyond 1e9 (squared in a TD loss) overflows to inf
+        check_range(f"{path}.p_f", self.p_f, 0.0, 1e9, allowed="[0, 1e9] (rewards are float32)")
+        check_range(f"{path}.p_q", self.p_q, 0.0, 1e9, allowed="[0, 1e9] (rewards are float32)")
         check_range(f"{path}.gamma", self.gamma, 0.0, 1.0)
         check_range(f"{path}.gamma_tick", self.gamma_tick, 0.0, 1.0)
         check_range(f"{path}.rho", self.rho, 0.0, 1.0)
