@@ -152,9 +152,9 @@ def validate(cfg: Config) -> Config:
     validate_recipes(cfg.recipes, baselines)
     known = (*baselines, *cfg.recipes)
     cfg.table.validate(tuple(cfg.recipes))
-    cfg.sweep.validate(known)
     if cfg.sweep.param == "n_vehicles":  # the point's site must hold its vehicles
         check_sweep_value("n_vehicles", cfg.sweep.value, cfg.site.n_nodes - 2)
+    cfg.sweep.validate(known)
     for row, recipe in cfg.sweep.specialists.items():
         check_choice(f"sweep.specialists.{row}", recipe, tuple(cfg.recipes))
     cfg.maps.validate(known)
