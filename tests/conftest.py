@@ -35,8 +35,9 @@ def make_state():
 
 @pytest.fixture
 def saved_policies(tmp_path):
-    """Untrained saved policies ``tabular``, ``dqn_partial``, ``search`` and ``generalist``
-    (an anchored DQN) under ``tmp_path/policies`` (enough for the plumbing of experiments
+    """Untrained saved policies ``tabular``, ``dqn_partial``, ``search``, ``imitation``,
+    ``generalist`` (imitation on ``partial_site``) and ``generalist_dqn`` (an anchored DQN)
+    under ``tmp_path/policies`` (enough for the plumbing of experiments
     that load policies by name)."""
     from fleet_torchrl.agents import save_policy
     from fleet_torchrl.agents.dqn import DQNPolicy, NetworkConfig
@@ -49,8 +50,14 @@ def saved_policies(tmp_path):
     from fleet_torchrl.agents.search import SearchPolicy
 
     save_policy(root / "search" / "policy.pt", SearchPolicy("table"), "search")
-    save_policy(root / "generalist" / "policy.pt",
+    save_policy(root / "generalist_dqn" / "policy.pt",
                 DQNPolicy(net, 3, "partial", "heuristic", 1.0), "dqn")
+    from fleet_torchrl.agents.imitation import ImitationPolicy
+
+    save_policy(root / "imitation" / "policy.pt", ImitationPolicy(3, "partial", 8, 1),
+                "imitation")
+    save_policy(root / "generalist" / "policy.pt", ImitationPolicy(6, "partial_site", 8, 1),
+                "imitation")
     return root
 
 

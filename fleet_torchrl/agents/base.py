@@ -137,6 +137,11 @@ class GuardedPolicy(Policy):
         raise TypeError("a guarded policy decides from the site's state: call decide()")
 
     def decide(self, site: Site, state: SiteState, ctx: DecisionContext) -> Tensor:
-        act = self.policy.decide(site, state, ctx)
-        soc_d = (state.soc * (state.pos == D)).sum(0)
-        return torch.where(soc_d < site.reserve_floor(state.params), 1, act).to(act.dtype)
+        return guard_actions(site, state, self.policy.decide(site, state, ctx))
+
+
+def guard_actions(site: Site, state: SiteState, act: Tensor) -> Tensor:
+    """``act`` with *charge* wherever the vehicle at ``D`` is below the site's reserve floor
+    (:class:`GuardedPolicy`)."""
+    soc_d = (state.soc * (state.pos == D)).sum(0)
+    return torch.where(soc_d < site.reserve_floor(state.params), 1, act).to(act.dtype)

@@ -118,7 +118,8 @@ class SweepConfig:
     value: float = 0.8  # the point evaluated by this job
     out: str = "results/sweeps"
     policies: list[str] = field(default_factory=lambda: [
-        "rule", "heuristic", "tabular", "dqn_partial", "dqn_all", "generalist", "search"])
+        "rule", "heuristic", "tabular", "dqn_partial", "dqn_all", "imitation", "generalist",
+        "generalist_dqn", "search"])
     # the point's own searches (agent=search on the point's site), each a row named by its
     # key with the overrides of its search; cached under search_dir by their settings.
     # Classes that read the charger's remaining time: thresholds, a table with 4 TC bins.
@@ -136,7 +137,8 @@ class SweepConfig:
     # specialist=false skips them
     specialist: bool = True
     specialists: dict[str, str] = field(default_factory=lambda: {
-        "specialist_dqn": "dqn_partial", "specialist_tabular": "tabular"})
+        "specialist_dqn": "dqn_partial", "specialist_tabular": "tabular",
+        "specialist_imitation": "imitation"})
     specialist_seeds: int = 1
     more_seeds: int = 3
     more_seeds_at: list[str] = field(default_factory=lambda: ["n_vehicles=5", "t_c=50"])
@@ -236,7 +238,7 @@ class MapsConfig:
 
     out: str = "results/policy_maps"
     policies: list[str] = field(default_factory=lambda: [
-        "rule", "heuristic", "tabular", "dqn_partial", "generalist", "search"])
+        "rule", "heuristic", "tabular", "dqn_partial", "imitation", "generalist", "search"])
     # the rollout planner (agent=planner defaults) decides from the whole site: its maps are
     # the share of charge decisions in each cell among the states it met on these sites
     # (site presets), over planner_sims x planner_ticks of the evaluation protocol

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
@@ -34,8 +34,10 @@ from ..agents import POLICY_FILE
 from ..agents.registry import load_policy_file
 from ..config import Config, compose_config
 from ..evaluation import evaluate_with, gain_over, save_result, seed_interval
-from ..store import load_policies, seed_dir
+from ..sim import SiteConfig
+from ..store import load_policies, seed_dir, site_preset, site_suffix
 from ..training import CHECKPOINT, checkpoint_mismatch, training_fingerprint
+from ..utils.checks import ConfigError
 from ..utils.plotting import plot_gain_boxplot, plot_learning_curves, save_figure
 from ..utils.runinfo import file_sha256, read_json, run_info, write_csv, write_json, write_text
 from .improvement import improvement
@@ -61,11 +63,74 @@ def training_seeds(cfg: Config) -> list[int]:
     return [cfg.seed + k for k in range(cfg.table.seeds)]
 
 
+# groups a table-level override would set for nothing: each recipe sets its own
+_RECIPE_GROUPS = ("state", "mdp", "agent", "network")
+
+
+def check_forwardable(cfg: Config) -> None:
+    """Refuse table-level settings that cannot reach the trainings: the learner, state,
+    objective and network are each recipe's own (``conf/recipes``), so ``make table
+    ARGS="mdp.reward=throughput"`` would change nothing it says. The site is forwarded
+    (:func:`site_overrides`)."""
+    plain = compose_config([])
+    for group in _RECIPE_GROUPS:
+        mine, default = getattr(cfg, group), getattr(plain, group)
+        if mine != default:
+            diff = next((f"{group}.{k}={v!r}" for k, v in vars(mine).items()
+                         if getattr(default, k, object()) != v), group)
+            raise ConfigError(f"{diff} does not reach the table's trainings (each recipe sets "
+                              f"its own {group}): put it in a recipe (conf/recipes) or run "
+                              "make train")
+    site_overrides(cfg)
+
+
+def site_overrides(cfg: Config) -> list[str]:
+    """The table's site as overrides of its trainings: none for the default site, else the
+    site preset and the fields that differ from it (``make table ARGS="site=five_vehicles"``
+    trains and evaluates on that site). A site distribution that is not a packaged preset
+    cannot be written as overrides, and is refused."""
+    site, default = cfg.site, SiteConfig()
+    if site == default:
+        return []
+    preset = site_preset(site.name)
+    if preset is not None and preset == site:
+        return [f"site={site.name}"]
+    if site.ranges is not None:
+        raise ConfigError(f"site.ranges={site.ranges!r} cannot be forwarded to the table's "
+                          "trainings: use a site preset (conf/site/) for a site distribution")
+    base = preset if preset is not None else default
+    out = [f"site={site.name}"] if preset is not None else [f"site.name={site.name}"]
+    for f in fields(SiteConfig):
+        if f.name not in ("name", "ranges") and getattr(site, f.name) != getattr(base, f.name):
+            out.append(f"site.{f.name}={getattr(site, f.name)}")
+    return out
+
+
+def _sets_site(cfg: Config, name: str) -> bool:
+    return any(o.split("=", 1)[0].lstrip("+~").split(".")[0] == "site"
+               for o in cfg.recipes[name].overrides)
+
+
+def recipe_folder(cfg: Config, name: str) -> str:
+    """The folder a recipe's policies are published in: its name, plus the site's suffix
+    when the table's site reaches it (a recipe with a site of its own, like the generalist,
+    keeps its name), so a table on another site never replaces the default site's."""
+    if site_overrides(cfg) and not _sets_site(cfg, name):
+        return name + site_suffix(cfg.site)
+    return name
+
+
+def recipe_seed_dir(cfg: Config, name: str, seed: int) -> Path:
+    return seed_dir(cfg.table.policies_dir, recipe_folder(cfg, name), seed)
+
+
 def run_overrides(name: str, seed: int, cfg: Config) -> list[str]:
-    """The overrides of training run ``name`` with ``seed`` (its policy goes to its seed dir)."""
-    out_dir = seed_dir(cfg.table.policies_dir, name, seed)
-    return [*cfg.recipes[name].training_overrides(cfg.table.preview), f"train.out_dir={out_dir}",
-            f"train.device={cfg.train.device}", f"seed={seed}"]
+    """The overrides of training run ``name`` with ``seed`` (its policy goes to its seed dir;
+    the table's site is forwarded unless the recipe sets its own)."""
+    out_dir = recipe_seed_dir(cfg, name, seed)
+    site = [] if _sets_site(cfg, name) else site_overrides(cfg)
+    return [*cfg.recipes[name].training_overrides(cfg.table.preview), *site,
+            f"train.out_dir={out_dir}", f"train.device={cfg.train.device}", f"seed={seed}"]
 
 
 def reusable(out_dir: Path, run_cfg: Config) -> bool:
@@ -109,7 +174,7 @@ def plan_training(name: str, seed: int, cfg: Config, progress: bool = False
     if not cfg.table.retrain and reusable(out_dir, run_cfg):
         print(f"[table] reusing {out_dir / POLICY_FILE}", flush=True)
         return None
-    job = TableJob(name, seed, [])
+    job = TableJob(recipe_folder(cfg, name), seed, [])
     run_dir = Path(cfg.table.runs_dir) / job.folder
     resume = (run_dir / CHECKPOINT).exists() and not cfg.table.retrain
     if resume:
@@ -148,6 +213,7 @@ def check_outputs(cfg: Config) -> None:
 def plan_jobs(cfg: Config, progress: bool = False) -> list[TableJob]:
     """The trainings the table needs, recipe by recipe and seed by seed (reused policies
     left out); ``progress``: whether a job may show its progress bar (one job at a time)."""
+    check_forwardable(cfg)
     jobs = [plan_training(name, seed, cfg, progress) for name in cfg.table.names(cfg.recipes)
             for seed in training_seeds(cfg)]
     return [j for j in jobs if j is not None]
@@ -155,7 +221,7 @@ def plan_jobs(cfg: Config, progress: bool = False) -> list[TableJob]:
 
 def recorded_train_time(name: str, seed: int, cfg: Config) -> float | None:
     """The training wall time a saved policy's summary records (seconds)."""
-    path = seed_dir(cfg.table.policies_dir, name, seed) / "train_summary.json"
+    path = recipe_seed_dir(cfg, name, seed) / "train_summary.json"
     try:
         return float(read_json(path)["wall_s"])
     except (OSError, ValueError, KeyError, TypeError):
@@ -163,7 +229,7 @@ def recorded_train_time(name: str, seed: int, cfg: Config) -> float | None:
 
 
 def objective_of(name: str, cfg: Config) -> str:
-    run_cfg = compose_config(cfg.recipes[name].training_overrides(cfg.table.preview))
+    run_cfg = compose_config(run_overrides(name, 0, cfg))
     return run_cfg.agent.objective(run_cfg.mdp)
 
 
@@ -235,7 +301,7 @@ def learning_curves(cfg: Config) -> dict[str, dict[int, list[tuple[float, float,
     curves: dict[str, dict[int, list[tuple[float, float]]]] = {}
     for name in cfg.table.names(cfg.recipes):
         for seed in training_seeds(cfg):
-            path = seed_dir(cfg.table.policies_dir, name, seed) / "train_summary.json"
+            path = recipe_seed_dir(cfg, name, seed) / "train_summary.json"
             if path.is_file():
                 hist = read_json(path).get("history", [])
                 curves.setdefault(name, {})[seed] = [
@@ -284,7 +350,7 @@ def evaluate_table(cfg: Config, times: dict[tuple[str, int], float | None]
     for name in cfg.table.names(cfg.recipes):
         per_seed, first = {}, None
         for seed in training_seeds(cfg):
-            pol = load_policy_file(seed_dir(cfg.table.policies_dir, name, seed), e.device)
+            pol = load_policy_file(recipe_seed_dir(cfg, name, seed), e.device)
             per_seed[seed] = evaluate(pol, f"{name}_seed{seed}")
             first = first or pol
         rows.append(improve(learned_row(name, objective_of(name, cfg), per_seed, rule, heur,

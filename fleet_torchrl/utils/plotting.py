@@ -20,17 +20,25 @@ TC_TABULAR = (0.0, 0.5)  # free / busy: the tabular state only sees TC > 0
 _CMAP = ListedColormap(["#d9e6f2", "#d95f02"])  # pass, charge
 
 
+# a partial_site policy's map is drawn at the default site: N_V / N_N, p_c, T_C / (T_C + N_N)
+DEFAULT_SITE_FEATURES = (3 / 15, 0.8, 30 / 45)
+
+
 @torch.no_grad()
-def policy_map(policy: Policy, tcs: tuple[float, ...], n: int = 101) -> torch.Tensor:
-    """Actions on a grid of ``partial`` states: ``[len(tcs), n (soc_D), n (lowest soc)]``."""
-    if policy.encoding != "partial":
+def policy_map(policy: Policy, tcs: tuple[float, ...], n: int = 101,
+               site_features: tuple[float, ...] = DEFAULT_SITE_FEATURES) -> torch.Tensor:
+    """Actions on a grid of ``partial`` states: ``[len(tcs), n (soc_D), n (lowest soc)]``
+    (a ``partial_site`` policy's with ``site_features`` appended: the default site's)."""
+    if policy.encoding not in ("partial", "partial_site"):
         raise ValueError(f"policy maps need the partial encoding, {policy.name} uses "
                          f"{policy.encoding}")
+    extra = site_features if policy.encoding == "partial_site" else ()
     soc = torch.linspace(0.0, 1.0, n)
     y, x = torch.meshgrid(soc, soc, indexing="ij")
     maps = []
     for tc in tcs:
-        obs = torch.stack([y, x, torch.full_like(x, tc)], dim=-1).reshape(-1, 3)
+        cols = [y, x, torch.full_like(x, tc), *(torch.full_like(x, f) for f in extra)]
+        obs = torch.stack(cols, dim=-1).reshape(-1, len(cols))
         dev = next(iter(policy.buffers()), next(iter(policy.parameters()), torch.empty(0))).device
         maps.append(policy(obs.to(dev)).reshape(n, n).cpu())
     return torch.stack(maps)

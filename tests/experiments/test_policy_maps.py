@@ -13,7 +13,8 @@ def test_policy_maps_from_saved_policies(tmp_path, saved_policies):
                           "maps.planner_sims=4", "maps.planner_ticks=300"])
     paths = run(cfg)
     assert sorted(p.name for p in paths) == ["dqn_partial.png", "generalist.png",
-                                             "heuristic.png", "planner_default.png",
+                                             "heuristic.png", "imitation.png",
+                                             "planner_default.png",
                                              "planner_five_vehicles.png", "rule.png",
                                              "search.png", "tabular.png"]
     from fleet_torchrl.agents import RulePolicy

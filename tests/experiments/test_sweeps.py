@@ -41,6 +41,9 @@ TINY_SPECIALISTS = [
     _recipe("dqn_partial", "agent=dqn", "state=partial", "agent.num_sites=2",
             "agent.steps_per_round=10", "agent.updates_per_round=2", "train.max_episodes=4",
             *TINY_LEARN),
+    _recipe("imitation", "agent=imitation", "state=partial", "agent.num_sites=4",
+            "agent.steps_per_round=5", "agent.rounds=2", "agent.updates_per_round=2",
+            "agent.expert.rollouts=2", "agent.expert.horizon=20", *TINY_LEARN),
     "sweep.more_seeds_at=['p_c=0.8']", "sweep.more_seeds=2"]
 
 
@@ -125,10 +128,11 @@ def test_miniature_sweep_end_to_end(tmp_path, saved_policies, command):
                             "queue_mean", "failure_rate", "failure_rate_max", "gain_pct",
                             "gain_ci95", "gain_per_seed", "share_of_best_known_pct"}
     names = {"rule", "heuristic", "tabular", "dqn_partial", "search", "search_threshold",
-             "search_table", "specialist_dqn", "specialist_tabular", "planner", "best_known"}
+             "search_table", "specialist_dqn", "specialist_tabular", "specialist_imitation",
+             "planner", "best_known"}
     extra = {r["policy"] for r in rows} - names
     assert len(extra) == 1 and extra.pop().startswith("planner_"), extra
-    assert len(rows) == 2 * 12
+    assert len(rows) == 2 * 13
     assert all(float(r["gain_pct"]) == 0.0 for r in rows if r["policy"] == "rule")
     for r in rows:  # the share is the gain over best_known's gain, where that is positive
         best = next(float(o["gain_pct"]) for o in rows
@@ -151,8 +155,10 @@ def test_miniature_sweep_end_to_end(tmp_path, saved_policies, command):
                      "p_c=0.8/search_table", "p_c=0.8/search_threshold"], found
     found = sorted(str(p.relative_to(tmp_path / "search").parent.parent)
                    for p in (tmp_path / "search").glob("*/specialist_*/*/*/policy.pt"))
-    assert found == ["p_c=0.4/specialist_dqn/seed0", "p_c=0.4/specialist_tabular/seed0",
+    assert found == ["p_c=0.4/specialist_dqn/seed0", "p_c=0.4/specialist_imitation/seed0",
+                     "p_c=0.4/specialist_tabular/seed0",
                      "p_c=0.8/specialist_dqn/seed0", "p_c=0.8/specialist_dqn/seed1",
+                     "p_c=0.8/specialist_imitation/seed0", "p_c=0.8/specialist_imitation/seed1",
                      "p_c=0.8/specialist_tabular/seed0", "p_c=0.8/specialist_tabular/seed1"]
     assert (out / "pc.png").stat().st_size > 1000 and (out / "pc.json").exists()
     point = json.loads((out / "pc" / "p_c=0.8.json").read_text())

@@ -180,3 +180,38 @@ def test_learning_curves_fit_their_data():
     fig = plot_learning_curves({"dqn": {0: [(60, 1.0), (120, 3.0)]}})  # no failure rates
     assert fig.axes[0].get_ylim()[0] <= -0.5  # the rule's 0 stays in view
     plt.close(fig)
+
+
+def test_a_table_on_another_site_trains_there_and_refuses_what_cannot_reach_its_runs():
+    """``make table ARGS="site=five_vehicles"`` forwards the site to every recipe that has no
+    site of its own and publishes under a name that says it (the default site's policies
+    stay untouched); settings each recipe sets itself are refused at the table level."""
+    from fleet_torchrl.experiments.table import (
+        check_forwardable,
+        recipe_folder,
+        run_overrides,
+        site_overrides,
+    )
+    from fleet_torchrl.utils.checks import ConfigError
+
+    plain = compose_config([])
+    assert site_overrides(plain) == [] and recipe_folder(plain, "tabular") == "tabular"
+    five = compose_config(["site=five_vehicles"])
+    assert site_overrides(five) == ["site=five_vehicles"]
+    ov = run_overrides("dqn_partial", 1, five)
+    assert "site=five_vehicles" in ov
+    assert any(o.endswith("dqn_partial_five_vehicles/seed1") for o in ov)
+    run = compose_config(ov)
+    assert run.site.n_vehicles == 5
+    # the generalist trains on its own site distribution whatever the table's site
+    assert recipe_folder(five, "generalist") == "generalist"
+    assert compose_config(run_overrides("generalist", 0, five)).site.randomized
+    # a field changed on top of a preset is forwarded too, under a name with its hash
+    tweak = compose_config(["site=five_vehicles", "site.p_c=0.5"])
+    assert site_overrides(tweak) == ["site=five_vehicles", "site.p_c=0.5"]
+    assert recipe_folder(tweak, "tabular").startswith("tabular_five_vehicles-")
+    check_forwardable(five)
+    for bad, field in (("mdp.reward=throughput", "mdp.reward"), ("state=all", "state.name"),
+                       ("network.width=8", "network.width")):
+        with pytest.raises(ConfigError, match=field):
+            check_forwardable(compose_config([bad]))
