@@ -498,3 +498,16 @@ def test_files_are_written_with_the_users_umask(tmp_path):
     finally:
         os.umask(old)
     assert (tmp_path / "r.json").stat().st_mode & 0o777 == 0o644
+
+
+def test_a_budget_that_is_not_what_runs_is_announced(tmp_path, caplog):
+    """train.max_episodes=1 trains a whole round of agent.num_sites episodes: said in one
+    warning line, not silently."""
+    from fleet_torchrl.config import compose_config
+    from fleet_torchrl.training import Trainer
+
+    cfg = compose_config([*TINY, "train.max_episodes=1", f"train.out_dir={tmp_path / 'p'}"])
+    with caplog.at_level("WARNING"):
+        Trainer(cfg, tmp_path / "run")
+    said = [r.getMessage() for r in caplog.records if "train.max_episodes=1" in r.getMessage()]
+    assert len(said) == 1 and "16 episodes" in said[0] and "\n" not in said[0], said
