@@ -120,11 +120,20 @@ def run(cfg: Config) -> dict:
     return result
 
 
+def preflight(cfg: Config, run_dir: str | None) -> None:
+    """Before anything is measured: ``bench.out`` can be written (not only after the run)."""
+    from .utils.paths import check_output
+
+    if cfg.bench.out:
+        check_output("bench.out", cfg.bench.out, "file")
+
+
 def task(dcfg: DictConfig) -> None:
     """Measure and print (``bench.out``: also as JSON)."""
     with user_errors():
         cfg = validated(dcfg)
-    run(cfg)
+        preflight(cfg, None)
+        run(cfg)
 
 
 main = hydra_command(task)

@@ -88,6 +88,31 @@ def raised_in_a_job(exc: BaseException) -> bool:
     return False
 
 
+# what to pick for a setting that is null unless an option sets it
+NULL_HINTS = {"site.ranges": "site=randomized (a site distribution), then override its fields"}
+
+
+def override_error(exc: BaseException) -> str | None:
+    """The one-line message for an override OmegaConf fails on with an internal error
+    (``AssertionError``, ``AttributeError``) while Hydra applies it: one that sets a field
+    below, or a value into, a structured setting that is null in this config
+    (``site.ranges.t_c=[20,40]`` without ``site=randomized``); None for anything else."""
+    tb, line = exc.__traceback__, None
+    while tb is not None:
+        if tb.tb_frame.f_code.co_name == "_apply_overrides_to_config":
+            override = tb.tb_frame.f_locals.get("override")
+            line = getattr(override, "input_line", None)
+        tb = tb.tb_next
+    if line is None:
+        return None
+    key = line.split("=", 1)[0].lstrip("+~")
+    parts = key.split(".")
+    null = next((".".join(parts[:k]) for k in range(1, len(parts) + 1)
+                 if ".".join(parts[:k]) in NULL_HINTS), ".".join(parts[:-1]) or key)
+    hint = NULL_HINTS.get(null, "an option of its group that sets it")
+    return f"{line} cannot be applied: {null} is null in this config; choose {hint}"
+
+
 @contextmanager
 def one_line_errors() -> Iterator[None]:
     """Hydra's composition errors and missing extras as ``error: ...`` and exit code 2.
@@ -102,6 +127,12 @@ def one_line_errors() -> Iterator[None]:
     os.environ["HYDRA_FULL_ERROR"] = "1"
     try:
         yield
+    except (AssertionError, AttributeError) as e:  # OmegaConf's, on an override it cannot apply
+        msg = None if raised_in_a_job(e) else override_error(e)
+        if msg is None:
+            raise
+        print(f"error: {msg}", file=sys.stderr)
+        sys.exit(2)
     except (HydraException, OmegaConfBaseException, ImportError) as e:
         hint = missing_extra(e)
         if hint is None and (isinstance(e, ImportError) or raised_in_a_job(e)):
@@ -131,29 +162,138 @@ def _callback_base() -> type:
     return Callback
 
 
+def preflight(job_name: str, cfg: Config, run_dir: str | None) -> None:
+    """The command's own checks before it starts (``preflight(cfg, run_dir)`` of the module
+    ``fleet_torchrl.<job name>``, if it has one): every path it will write, a checkpoint to
+    resume. Raises what :data:`~fleet_torchrl.utils.cli.USER_ERRORS` lists."""
+    import importlib
+
+    try:
+        module = importlib.import_module(f"{__package__}.{job_name}")
+    except ImportError:  # an app of another package (a test's) has no checks here
+        return
+    check = getattr(module, "preflight", None)
+    if check is not None:
+        check(cfg, run_dir)
+
+
+class _JobConfig:
+    """``config`` as Hydra's ``run_job`` will see it: the Hydra singleton set to it and its
+    ``hydra.runtime.output_dir`` resolved (``${hydra:runtime.output_dir}`` in a setting, as
+    the grid's ``train.out_dir``, resolves to where the job will run). Restores the
+    singleton on exit."""
+
+    def __init__(self, config: Any, dir_key: str, subdir_key: str | None = None) -> None:
+        self.config, self.dir_key, self.subdir_key = config, dir_key, subdir_key
+        self.run_dir: str | None = None
+
+    def __enter__(self) -> _JobConfig:
+        from hydra.core.hydra_config import HydraConfig
+        from omegaconf import OmegaConf, open_dict, read_write
+
+        self._saved = HydraConfig.instance().cfg
+        HydraConfig.instance().set_config(self.config)
+        try:
+            run_dir = str(OmegaConf.select(self.config, self.dir_key))
+            if self.subdir_key is not None:
+                run_dir = os.path.join(run_dir, str(OmegaConf.select(self.config,
+                                                                     self.subdir_key)))
+        except Exception:  # noqa: BLE001 (not resolvable here: the job meets it itself)
+            return self
+        self.run_dir = run_dir
+        with read_write(self.config.hydra.runtime), open_dict(self.config.hydra.runtime):
+            self.config.hydra.runtime.output_dir = os.path.abspath(run_dir)
+        HydraConfig.instance().set_config(self.config)
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        from hydra.core.hydra_config import HydraConfig
+
+        if self._saved is not None:
+            HydraConfig.instance().set_config(self._saved)
+
+
+def _check_job(config: Any, dir_key: str, subdir_key: str | None = None,
+               label: str = "", run_preflight: bool = True) -> Config | None:
+    """Validate one job's composed config and run its command's preflight, the job's run
+    folder included, before anything is written; a bad value ends here in one line and exit
+    code 2. Returns the typed config if it can be handed to the task as it is (one that
+    refers to the run folder, resolved here ahead of ``run_job``, is validated again
+    there), None otherwise."""
+    import copy
+
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    from .utils.cli import USER_ERRORS, single_line
+    from .utils.paths import check_output
+
+    prefix = f"{label}: " if label else ""
+    handed: Config | None = None
+    try:
+        try:  # as the task will get it (unless it refers to where the job runs)
+            handed = to_config(without_hydra(config))
+        except OmegaConfBaseException:
+            handed = None
+        job_cfg = copy.deepcopy(config)
+        with _JobConfig(job_cfg, dir_key, subdir_key) as job:
+            if job.run_dir is not None and OmegaConf.select(
+                    job_cfg, "hydra.output_subdir", default=None) is not None:
+                check_output(f"hydra.{dir_key.split('.', 1)[1]}", job.run_dir, "dir")
+            cfg = handed if handed is not None else to_config(without_hydra(job_cfg))
+            if run_preflight:
+                preflight(str(job_cfg.hydra.job.name), cfg, job.run_dir)
+    except OmegaConfBaseException:  # resolvable in the run only: the task validates
+        return None
+    except USER_ERRORS as e:  # a bad value: one line, exit code 2, no run folder
+        print(f"error: {prefix}{single_line(e)}", file=sys.stderr)
+        sys.exit(2)
+    except Exception:  # noqa: BLE001 (the task meets it again, with its traceback)
+        return None
+    return handed
+
+
 class ValidateFirst(_callback_base()):
-    """Hydra callback (``hydra.callbacks.validate`` in ``conf/config.yaml``): a single run's
-    config is validated before Hydra creates its run folder, so a bad value ends in one line
-    and exit code 2 without leaving an empty ``outputs/<command>/...`` behind; the task then
-    takes this config (:func:`validated`) instead of validating it again. A config that can
-    only be resolved inside the run (``${hydra:runtime.output_dir}``) is left to the task."""
+    """Hydra callback (``hydra.callbacks.validate`` in ``conf/config.yaml``): a config is
+    validated, and every path its command will write checked (the command's ``preflight``:
+    outputs, a checkpoint to resume), before Hydra creates a run folder or writes
+    ``.hydra/``, so bad input ends in one line and exit code 2 with nothing written (a
+    refused resume does not first overwrite the run's ``.hydra/overrides.yaml``). A single
+    run's typed config is then handed to the task (:func:`validated`). A multirun checks
+    every job this way before launching any (Hydra's basic sweeper: the jobs it will make;
+    another sweeper: its base config)."""
 
     def on_run_start(self, config: Any, **kwargs: Any) -> None:
-        from omegaconf.errors import OmegaConfBaseException
-
-        from .utils.cli import USER_ERRORS
-
         _VALIDATED.clear()
-        try:
-            cfg = to_config(without_hydra(config))
-        except OmegaConfBaseException:  # resolvable in the run only: the task validates
+        cfg = _check_job(config, "hydra.run.dir")
+        if cfg is not None:
+            _VALIDATED.append(cfg)
+
+    def on_multirun_start(self, config: Any, **kwargs: Any) -> None:
+        from hydra.core.global_hydra import GlobalHydra
+
+        from .experiments.launch import sweep_jobs
+        from .utils.cli import user_errors
+        from .utils.paths import check_output
+
+        with _JobConfig(config, "hydra.sweep.dir") as top, user_errors():
+            if top.run_dir is not None:
+                check_output("hydra.sweep.dir", top.run_dir, "dir")
+        jobs = sweep_jobs(config)
+        if jobs is None:  # another sweeper (the table's checks its own jobs): the base config
+            _check_job(config, "hydra.sweep.dir", run_preflight=False)
             return
-        except USER_ERRORS as e:  # a bad value: one line, exit code 2, no run folder
-            print(f"error: {e}", file=sys.stderr)
-            sys.exit(2)
-        except Exception:  # noqa: BLE001 (the task meets it again, with its traceback)
-            return
-        _VALIDATED.append(cfg)
+        loader = GlobalHydra.instance().config_loader()
+        for num, overrides in enumerate(jobs[0]):
+            job_cfg = loader.load_sweep_config(config, list(overrides))
+            from omegaconf import open_dict
+
+            with open_dict(job_cfg):
+                job_cfg.hydra.job.id = f"{job_cfg.hydra.job.name}_{num}"
+                job_cfg.hydra.job.num = num
+            label = " ".join(o for o in overrides
+                             if o.split("=", 1)[0].lstrip("+~") in jobs[1]) or f"job {num}"
+            _check_job(job_cfg, "hydra.sweep.dir", "hydra.sweep.subdir", label)
 
 
 def hydra_command(task: Callable[[Any], Any], config_name: str = "config"

@@ -37,11 +37,12 @@ from .experiments.config import (
     SweepConfig,
     SweepSummaryConfig,
     TableConfig,
+    check_sweep_value,
     validate_recipes,
 )
 from .sim.config import SiteConfig
 from .training.config import TrainConfig
-from .utils.checks import ConfigError, check_choice, check_range
+from .utils.checks import ConfigError, check_choice, check_range, deferred_validation
 
 CONF_DIR = Path(__file__).resolve().parent / "conf"
 # the file tools' own configs: command name -> schema (conf/<name>.yaml extends schema_<name>)
@@ -114,16 +115,17 @@ def register_configs() -> None:
         if not OmegaConf.has_resolver(name):
             OmegaConf.register_new_resolver(name, resolver)
     cs = ConfigStore.instance()
-    cs.store(name="schema_config", node=Config)
-    for group, schema in (("site", SiteConfig), ("state", StateConfig), ("mdp", MDPConfig),
-                          ("eval", EvalConfig), ("network", NetworkConfig),
-                          ("train", TrainConfig)):
-        cs.store(name=f"schema_{group}", node=schema)
-    for name, schema in AGENT_SCHEMAS.items():
-        cs.store(name=f"schema_agent_{name}", node=schema)
-    # the primary configs of the commands that only read result files (conf/<command>.yaml)
-    for name, schema in TOOL_SCHEMAS.items():
-        cs.store(name=f"schema_{name}", node=schema)
+    with deferred_validation():  # defaults are valid; validating imports the registries
+        cs.store(name="schema_config", node=Config)
+        for group, schema in (("site", SiteConfig), ("state", StateConfig), ("mdp", MDPConfig),
+                              ("eval", EvalConfig), ("network", NetworkConfig),
+                              ("train", TrainConfig)):
+            cs.store(name=f"schema_{group}", node=schema)
+        for name, schema in AGENT_SCHEMAS.items():
+            cs.store(name=f"schema_agent_{name}", node=schema)
+        # the primary configs of the commands that only read result files (conf/<command>.yaml)
+        for name, schema in TOOL_SCHEMAS.items():
+            cs.store(name=f"schema_{name}", node=schema)
 
 
 def validate(cfg: Config) -> Config:
@@ -150,13 +152,43 @@ def validate(cfg: Config) -> Config:
     validate_recipes(cfg.recipes, baselines)
     known = (*baselines, *cfg.recipes)
     cfg.table.validate(tuple(cfg.recipes))
+    if cfg.sweep.param == "n_vehicles":  # the point's site must hold its vehicles
+        check_sweep_value("n_vehicles", cfg.sweep.value, cfg.site.n_nodes - 2)
     cfg.sweep.validate(known)
     for row, recipe in cfg.sweep.specialists.items():
         check_choice(f"sweep.specialists.{row}", recipe, tuple(cfg.recipes))
     cfg.maps.validate(known)
     cfg.objective.validate()
     cfg.bench.validate()
+    check_memory_needs(cfg, spec.trainable)
     return cfg
+
+
+def check_memory_needs(cfg: Config, trainable: bool) -> None:
+    """Refuse, before anything is allocated, a setting whose allocation would not fit in
+    this machine's memory (:mod:`fleet_torchrl.utils.resources`): a training's sites,
+    network, replay buffer or search population (the agent's own estimate,
+    ``AgentConfig.memory``), an evaluation's simulations (a planner's futures included)."""
+    from .env.encodings import get_encoding
+    from .evaluation.config import eval_bytes
+    from .sim import Site
+    from .sim.config import site_bytes
+    from .utils.resources import check_memory
+
+    sb = site_bytes(cfg.site)
+    per = cfg.agent.sites_per_simulation()
+    sims = "the evaluation's simulations" + (f" ({per} sites in flight each, the planner's "
+                                             "futures)" if per > 1 else "")
+    needs = [("eval.n_sims", cfg.eval.n_sims, eval_bytes(sb, cfg.eval.n_sims, per), sims)]
+    if trainable:
+        n_obs = get_encoding(cfg.state.name).size(Site(cfg.site))
+        needs += cfg.agent.memory(cfg.network, n_obs, sb)
+        needs.append(("train.eval_sims", cfg.train.eval_sims,
+                      eval_bytes(sb, cfg.train.eval_sims), "the periodic evaluation"))
+    for i, b in enumerate(cfg.bench.batches):
+        needs.append((f"bench.batches[{i}]", b, 3 * b * sb, "a benchmark batch of sites"))
+    for setting, value, nbytes, what in needs:
+        check_memory(setting, value, nbytes, what)
 
 
 def compose_config(overrides: list[str] | tuple[str, ...] = ()) -> Config:
@@ -200,7 +232,8 @@ def to_config(cfg: DictConfig | Config) -> Config:
         bad = unknown_keys(cfg)
         if bad:
             raise ConfigError(bad[0])
-    obj = OmegaConf.to_object(cfg) if isinstance(cfg, DictConfig) else cfg
+    with deferred_validation():  # validated whole below, each field under its own path
+        obj = OmegaConf.to_object(cfg) if isinstance(cfg, DictConfig) else cfg
     if not isinstance(obj, Config):  # composed without the schema (e.g. plain YAML in a test)
         raise ConfigError("config was not composed from the 'schema_config' schema")
     return validate(obj)
@@ -224,7 +257,8 @@ def to_tool_config(cfg: DictConfig, schema: type) -> Any:
     bad = unknown_keys(cfg)
     if bad:
         raise ConfigError(bad[0])
-    obj = OmegaConf.to_object(cfg)
+    with deferred_validation():
+        obj = OmegaConf.to_object(cfg)
     if not isinstance(obj, schema):
         raise ConfigError(f"config was not composed from the 'schema_...' of {schema.__name__}")
     validate_tool = getattr(obj, "validate", None)

@@ -25,6 +25,18 @@ if TYPE_CHECKING:
 log = logging.getLogger("fleet_torchrl.evaluate")  # to stdout and the Hydra job's log file
 
 
+def preflight(cfg: Config, run_dir: str | Path | None) -> None:
+    """Before the run folder exists: the result path (and its CSV beside it) can be
+    written, and a saved policy to evaluate exists and loads (its hash, finite weights, its
+    agent and state)."""
+    from .evaluation.results import check_result_path
+    from .store import make_policy
+
+    if cfg.eval.out:
+        check_result_path(cfg.eval.out)
+    make_policy(cfg, device="cpu")  # a baseline is built from its config: nothing to read
+
+
 def run(cfg: Config, out: str | Path | None) -> dict:
     from .evaluation import evaluate_with, format_table, save_result
     from .evaluation.results import check_result_path

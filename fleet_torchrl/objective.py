@@ -19,6 +19,18 @@ from .utils.cli import user_errors
 if TYPE_CHECKING:
     from omegaconf import DictConfig
 
+    from .config import Config
+
+
+def preflight(cfg: Config, run_dir: str | None) -> None:
+    """Before the run folder exists: ``objective.out`` can be written, and the folder of
+    saved policies exists (without it the table would show the baselines only, as if no
+    policy had been trained)."""
+    from .utils.paths import check_input_dir, check_output
+
+    check_output("objective.out", cfg.objective.out, "dir")
+    check_input_dir("table.policies_dir", cfg.table.policies_dir)
+
 
 def task(dcfg: DictConfig) -> None:
     """Score every candidate policy by the objective's reward and by its trips."""
@@ -27,6 +39,7 @@ def task(dcfg: DictConfig) -> None:
 
     with user_errors():
         cfg = validated(dcfg)
+        preflight(cfg, None)
         o = cfg.objective
         scores = {name: mdp_score(p, cfg.site, cfg.mdp, o.n_sites, o.seed, cfg.eval.device)
                   for name, p in candidate_policies(cfg).items()}

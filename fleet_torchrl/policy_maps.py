@@ -14,6 +14,15 @@ from .utils.cli import user_errors
 if TYPE_CHECKING:
     from omegaconf import DictConfig
 
+    from .config import Config
+
+
+def preflight(cfg: Config, run_dir: str | None) -> None:
+    """Before the run folder exists: ``maps.out`` can hold the maps."""
+    from .utils.paths import check_output
+
+    check_output("maps.out", cfg.maps.out, "dir")
+
 
 def task(dcfg: DictConfig) -> None:
     """Draw the action map of every policy of ``maps.policies``."""

@@ -7,7 +7,6 @@ The command line only; what it computes is :mod:`fleet_torchrl.experiments.repor
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 from .cli import hydra_command
@@ -22,16 +21,18 @@ if TYPE_CHECKING:
 def task(dcfg: DictConfig) -> None:
     """Write the report from the result files under ``results``."""
     from .experiments.report import build
+    from .utils.paths import check_input_dir, check_output
     from .utils.runinfo import write_text
 
     with user_errors():
         c = to_tool_config(dcfg, ReportConfig)
-        results = Path(c.results)
+        results = check_input_dir("results", c.results)
+        out = check_output("out", c.out, "file")  # the report, and its figures beside it
+        check_output("out", out.parent / "figures", "dir")
         if not (results / "table" / "table.md").is_file():
             raise FileNotFoundError(f"no main comparison under {results} (table/table.md): run "
                                     f"`make table` first; {c.out} is left unchanged")
-    out = Path(c.out)
-    write_text(out, build(results, out))
+        write_text(out, build(results, out))
     print(f"[report] wrote {out}")
 
 

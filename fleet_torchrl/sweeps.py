@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import sys
 import traceback
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from .cli import hydra_command, validated
 from .utils.cli import user_errors
@@ -18,10 +18,31 @@ from .utils.cli import user_errors
 if TYPE_CHECKING:
     from omegaconf import DictConfig
 
+    from .config import Config
 
-def task(dcfg: DictConfig) -> None:
+
+def preflight(cfg: Config, run_dir: str | None) -> None:
+    """Before any point is launched: a sweep of one site (not a distribution) whose outputs
+    can be written and whose folder is its own."""
+    from .experiments.sweeps import check_point_outputs
+    from .utils.checks import ConfigError
+
+    if cfg.site.randomized:
+        raise ConfigError(f"site={cfg.site.name!r} is a site distribution: a sweep varies "
+                          f"{cfg.sweep.param} of one site; run it on a single site "
+                          "(e.g. site=default)")
+    check_point_outputs(cfg)
+
+
+def task(dcfg: DictConfig) -> Any:
     """One point of a sweep (one Hydra job); a failure is written beside the point's result
-    (``.error``) and the other points go on."""
+    (``.error``) and the other points go on, but it counts: the job returns
+    :class:`~fleet_torchrl.experiments.launch.JobFailed`, so the multirun exits non-zero at
+    its end (a single point's run exits 1 at once)."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    from .experiments.launch import JobFailed
     from .experiments.sweeps import point_path, run_point
     from .utils.runinfo import write_text
 
@@ -32,8 +53,13 @@ def task(dcfg: DictConfig) -> None:
     except Exception as e:  # keep the other points of the multirun going
         path = point_path(cfg)
         write_text(path.with_suffix(".error"), traceback.format_exc())
-        print(f"error: point {path.stem} failed ({type(e).__name__}: {e}); see "
+        msg = str(e).strip().splitlines()[0] if str(e).strip() else ""
+        print(f"error: point {path.stem} failed ({type(e).__name__}: {msg}); see "
               f"{path.with_suffix('.error')}", file=sys.stderr)
+        if HydraConfig.get().mode != RunMode.MULTIRUN:
+            sys.exit(1)
+        return JobFailed(path.stem, f"{type(e).__name__}: {msg}")
+    return None
 
 
 main = hydra_command(task)

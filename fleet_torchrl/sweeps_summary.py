@@ -25,9 +25,11 @@ if TYPE_CHECKING:
 def task(dcfg: DictConfig) -> None:
     """Summarise sweep ``name``; exit code 1 if a point failed or is missing."""
     from .experiments.sweeps_summary import expected_points, summarize
+    from .utils.paths import check_output
 
     with user_errors():
         c = to_tool_config(dcfg, SweepSummaryConfig)
+        check_output("out", c.out, "dir")
         expect = c.expect if c.expect is not None else expected_points(c.name)
         s = summarize(c.name, Path(c.out), expect)
     n_points = len({r["value"] for r in s["rows"]})

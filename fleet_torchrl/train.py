@@ -30,13 +30,36 @@ if TYPE_CHECKING:
 log = logging.getLogger("fleet_torchrl.train")  # Hydra writes it to stdout and <run dir>/train.log
 
 
+def preflight(cfg: Config, run_dir: str | Path | None) -> None:
+    """What is checked before Hydra writes the run folder (:class:`~fleet_torchrl.cli.
+    ValidateFirst`) and again before a job trains: the agent is a learner, the folder its
+    policy is published to can be written (not only after the whole training), and a resume
+    finds its checkpoint, of the same settings (a refused resume writes nothing)."""
+    from .agents.registry import AGENTS, get_agent
+    from .store import default_policy_dir
+    from .training.checkpoint import CHECKPOINT, check_resumable
+    from .utils.checks import ConfigError
+    from .utils.paths import check_output
+
+    if not get_agent(cfg.agent.name).trainable:
+        raise ConfigError(f"agent={cfg.agent.name} is invalid for train: it is not trained; "
+                          "allowed one of "
+                          + ", ".join(n for n, s in AGENTS.items() if s.trainable))
+    check_output("train.out_dir" if cfg.train.out_dir else "table.policies_dir",
+                 default_policy_dir(cfg), "dir")
+    if cfg.resume and run_dir is not None:
+        check_resumable(Path(run_dir) / CHECKPOINT, cfg)
+
+
 def train(cfg: Config, run_dir: str | Path) -> dict:
-    """Train ``cfg`` in ``run_dir`` (its provenance written first); the run's summary."""
+    """Train ``cfg`` in ``run_dir`` (checked first, then its provenance written); the run's
+    summary."""
     import torch
 
     from .training import Trainer
     from .utils.runinfo import run_info, write_json
 
+    preflight(cfg, run_dir)  # a refused resume must not overwrite the run's run_info.json
     if cfg.train.threads:
         torch.set_num_threads(cfg.train.threads)
     write_json(Path(run_dir) / "run_info.json", run_info(cfg, seed=cfg.seed))

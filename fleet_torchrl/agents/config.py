@@ -14,7 +14,15 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from ..utils.checks import ConfigError, check_choice, check_range
+from ..utils.checks import ConfigError, check_choice, check_range, validate_on_init
+
+Need = tuple  # (setting, value, bytes, what): one allocation a setting sizes
+
+
+def transition_bytes(n_obs: int) -> int:
+    """One stored transition of a replay buffer (observation and next observation, action,
+    reward, flags, counters, discount exponent), on the high side."""
+    return 8 * n_obs + 256
 
 
 @dataclass
@@ -22,6 +30,9 @@ class AgentConfig:
     """Base schema of the ``agent`` group; each agent extends it with its own fields."""
 
     name: str = ""
+
+    def __post_init__(self) -> None:
+        validate_on_init(self)  # every agent's own fields (cross-checks need ``cfg``)
 
     def validate(self, cfg: Any = None, path: str = "agent") -> AgentConfig:
         """Range checks of this agent's fields (``cfg``: the whole config, duck-typed, for
@@ -31,6 +42,18 @@ class AgentConfig:
     def objective(self, mdp: Any) -> str:
         """The objective this agent's policies are trained for (the table's column)."""
         return mdp.reward
+
+    def sites_per_simulation(self) -> int:
+        """Sites in flight per simulated site when this agent decides (a planner's futures
+        are sites too): what an evaluation's memory scales with."""
+        return 1
+
+    def memory(self, network: Any, n_obs: int, site_bytes: int) -> list[Need]:
+        """What a training of this agent allocates, each as ``(setting, value, bytes,
+        what)`` of the setting that sizes it (checked against the machine's memory before
+        anything is allocated: :func:`fleet_torchrl.utils.resources.check_memory`)."""
+        n = getattr(self, "num_sites", 1)
+        return [("agent.num_sites", n, n * site_bytes, "the training environment's sites")]
 
     def run_suffix(self, mdp: Any) -> str:
         """What a run's policy name adds to the agent's: the objective unless it is the
@@ -142,6 +165,15 @@ class DQNAgentConfig(AgentConfig):
                               "use one of them or agent.anchor=none")
         return self
 
+    def memory(self, network: Any, n_obs: int, site_bytes: int) -> list[Need]:
+        out = super().memory(network, n_obs, site_bytes)
+        rnd = self.num_sites * self.steps_per_round
+        out.append(("agent.steps_per_round", self.steps_per_round,
+                    rnd * (site_bytes + 2 * transition_bytes(n_obs)),
+                    f"a round's steps of agent.num_sites={self.num_sites} sites"))
+        out += network.memory(n_obs, prioritized=self.prioritized)
+        return out
+
     def run_suffix(self, mdp: Any) -> str:
         """The objective's suffix, then ``_anchored`` for a policy anchored to the heuristic:
         it acts unlike a plain DQN of the same recipe and must not replace one."""
@@ -165,6 +197,9 @@ class NetworkConfig:
     lr_decay: str = "cosine"  # none | cosine | linear, over all gradient steps of the run
     lr_final: float = 0.05  # final learning rate as a fraction of lr (lr_decay != none)
 
+    def __post_init__(self) -> None:
+        validate_on_init(self)
+
     def validate(self, path: str = "network") -> NetworkConfig:
         check_range(f"{path}.depth", self.depth, 0, 64)
         check_range(f"{path}.width", self.width, 1, 65_536)
@@ -179,6 +214,24 @@ class NetworkConfig:
         check_choice(f"{path}.lr_decay", self.lr_decay, LR_DECAYS)
         check_range(f"{path}.lr_final", self.lr_final, 0.0, 1.0)
         return self
+
+    def parameters(self, n_obs: int, n_out: int = 2) -> int:
+        """Weights and biases of the Q-network (``depth`` hidden layers of ``width``)."""
+        w, d = self.width, self.depth
+        if d == 0:
+            return (n_obs + 1) * n_out
+        return (n_obs + 1) * w + (d - 1) * (w + 1) * w + (w + 1) * n_out
+
+    def memory(self, n_obs: int, prioritized: bool = False) -> list[Need]:
+        """What DQN allocates for its network (online and target weights, gradients, Adam's
+        two moments, the best snapshot: six float32 copies; a batch's activations forward
+        and backward) and for its replay buffer (allocated whole at the first store)."""
+        w, d = self.width, self.depth
+        weights = 6 * 4 * self.parameters(n_obs) + 4 * 4 * self.batch_size * w * max(d, 1)
+        per = transition_bytes(n_obs) + (64 if prioritized else 0)
+        return [("network.width", w, weights, f"the Q-network (network.depth={d})"),
+                ("network.buffer_size", self.buffer_size, self.buffer_size * per,
+                 "the replay buffer")]
 
     def lr_factor(self, total_updates: int):
         """The learning-rate multiplier after ``k`` of ``total_updates`` gradient steps
@@ -256,6 +309,13 @@ class SearchAgentConfig(AgentConfig):
     def training_rounds(self, train: Any) -> int:
         return self.generations
 
+    def memory(self, network: Any, n_obs: int, site_bytes: int) -> list[Need]:
+        n = self.population * self.sites  # one generation is one batched simulation
+        act = 4 * self.hidden * (self.depth + 1) if self.policy_class == "mlp" else 0
+        return [("agent.population", self.population, n * (site_bytes + act + 64),
+                 f"a generation of agent.sites={self.sites} sites per candidate, simulated "
+                 "at once")]
+
     def objective(self, mdp: Any) -> str:
         return "trips"  # the search maximises mean trips directly, whatever mdp.reward says
 
@@ -319,6 +379,9 @@ class PlannerAgentConfig(AgentConfig):
         check_range(f"{path}.seed", self.seed, 0, 2**32 - 1)
         return self
 
+    def sites_per_simulation(self) -> int:
+        return 1 + 2 * self.rollouts  # each deciding site imagines 2 x rollouts futures
+
 
 @dataclass
 class ImitationAgentConfig(AgentConfig):
@@ -361,6 +424,17 @@ class ImitationAgentConfig(AgentConfig):
         check_range(f"{path}.batch_size", self.batch_size, 1, self.capacity,
                     allowed=f"[1, capacity = {self.capacity}]")
         return self
+
+    def memory(self, network: Any, n_obs: int, site_bytes: int) -> list[Need]:
+        futures = self.num_sites * self.expert.sites_per_simulation()
+        weights = 4 * 4 * ((n_obs + 1) * self.hidden + self.depth * (self.hidden + 1)
+                           * self.hidden) + 4 * 4 * self.batch_size * self.hidden * self.depth
+        return [("agent.num_sites", self.num_sites, futures * site_bytes,
+                 f"the sites and the expert's futures (agent.expert.rollouts="
+                 f"{self.expert.rollouts})"),
+                ("agent.capacity", self.capacity, self.capacity * (4 * n_obs + 64),
+                 "the labelled states kept"),
+                ("agent.hidden", self.hidden, weights, f"the student (agent.depth={self.depth})")]
 
     def beta(self, round_idx: int) -> float:
         """Probability of acting with the expert in round ``round_idx`` (0-based)."""

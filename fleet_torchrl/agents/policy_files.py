@@ -1,10 +1,16 @@
 """Saved-policy files: one ``policy.pt`` (written atomically) holding a plain dict.
 
 Keys: ``format``, ``kind`` (the agent's registry name), ``encoding``, ``spec`` (the
-constructor arguments of the policy class, :meth:`Policy.policy_spec`), ``state_dict`` and
-``meta`` (provenance). The key stays ``spec`` although the method was renamed (it shadowed
-TorchRL's ``spec`` attribute): files written before and after read alike, and a retrained
-policy's bytes, whose hash the table and the sweeps compare, do not change.
+constructor arguments of the policy class, :meth:`Policy.policy_spec`), ``state_dict``,
+``meta`` (provenance) and ``tensors_sha256`` (:func:`tensors_sha256` of the state dict).
+
+Integrity: a file whose tensors do not match the hash it records (a flipped byte that
+still unpickles would otherwise load and evaluate as another policy) is refused, as is a
+policy with a NaN or an infinite weight, at load and at save (so a diverged training
+publishes nothing). A file written before the hash existed loads, with a one-line warning.
+
+The key stays ``spec`` although the method was renamed (it shadowed TorchRL's ``spec``
+attribute): files written before and after read alike.
 :func:`~fleet_torchrl.agents.registry.load_policy_file` rebuilds the policy through the
 registry.
 """
@@ -13,6 +19,7 @@ from __future__ import annotations
 
 import hashlib
 import io
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -23,17 +30,57 @@ from .base import Policy
 
 FORMAT = "fleet_torchrl.policy/2"
 POLICY_FILE = "policy.pt"
+HASH_KEY = "tensors_sha256"
+
+log = logging.getLogger(__name__)
+_warned: set[str] = set()  # files without a hash, announced once per process
+
+
+class NonFiniteWeights(ValueError):
+    """A policy whose weights hold NaN or inf (``key``: the first such tensor)."""
+
+    def __init__(self, message: str, key: str) -> None:
+        super().__init__(message)
+        self.key = key
+
+
+def tensors_sha256(state_dict: dict[str, torch.Tensor]) -> str:
+    """SHA-256 of a state dict's tensors: each name, dtype, shape and bytes, in name order.
+    A hash of the tensors rather than of the file: the same weights give the same hash
+    whatever torch's serialisation does around them."""
+    h = hashlib.sha256()
+    for key in sorted(state_dict):
+        t = state_dict[key].detach().cpu().contiguous()
+        h.update(f"{key}|{t.dtype}|{tuple(t.shape)}|".encode())
+        h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+    return h.hexdigest()
+
+
+def first_non_finite(state_dict: dict[str, torch.Tensor]) -> str | None:
+    """The name of the first floating-point tensor holding a NaN or an inf, or None."""
+    for key in sorted(state_dict):
+        t = state_dict[key]
+        if (t.is_floating_point() or t.is_complex()) and not bool(torch.isfinite(t).all()):
+            return key
+    return None
 
 
 def policy_bytes(policy: Policy, kind: str, meta: dict[str, Any] | None = None) -> bytes:
-    """The bytes of the policy file of ``policy`` (of registry agent ``kind``)."""
+    """The bytes of the policy file of ``policy`` (of registry agent ``kind``); raises
+    :class:`NonFiniteWeights` for a policy with a NaN or an infinite weight."""
+    state = {k: v.detach().cpu() for k, v in policy.state_dict().items()}
+    bad = first_non_finite(state)
+    if bad is not None:
+        raise NonFiniteWeights(f"cannot save the {kind} policy: its weights hold NaN or inf "
+                               f"({bad}); nothing was written", bad)
     bundle = {
         "format": FORMAT,
         "kind": kind,
         "encoding": policy.encoding,
         "spec": policy.policy_spec(),
-        "state_dict": {k: v.detach().cpu() for k, v in policy.state_dict().items()},
+        "state_dict": state,
         "meta": meta or {},
+        HASH_KEY: tensors_sha256(state),
     }
     buf = io.BytesIO()
     torch.save(bundle, buf)
@@ -64,4 +111,21 @@ def read_policy_file(path: str | Path) -> tuple[Path, dict[str, Any]]:
             f"{path} is not a readable policy file ({type(e).__name__}: {e})") from None
     if not isinstance(bundle, dict) or bundle.get("format") != FORMAT:
         raise ValueError(f"{path} is not a fleet_torchrl policy file (format {FORMAT} expected)")
+    state = bundle.get("state_dict")
+    if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor)
+                                              for v in state.values()):
+        raise ValueError(f"{path} is not a fleet_torchrl policy file (no tensors)")
+    want = bundle.get(HASH_KEY)
+    if want is None:
+        if str(path) not in _warned:
+            _warned.add(str(path))
+            log.warning("%s records no hash of its weights (written by an older version): "
+                        "loaded unchecked; retrain or re-save it to add one", path)
+    elif want != tensors_sha256(state):
+        raise ValueError(f"{path} is corrupt: its weights do not match the hash it records; "
+                         "retrain the policy or restore the file")
+    bad = first_non_finite(state)
+    if bad is not None:
+        raise NonFiniteWeights(f"{path} holds non-finite weights (NaN or inf in {bad}): "
+                               "refused; retrain the policy", bad)
     return path, bundle

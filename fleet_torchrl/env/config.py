@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
-from ..utils.checks import check_choice, check_range
+from ..utils.checks import ConfigError, check_choice, check_range, validate_on_init
 
 
 @dataclass
@@ -12,6 +12,9 @@ class StateConfig:
     """State encoding seen by the agents (MODEL §2): ``partial`` (3 features) or ``all``."""
 
     name: str = "partial"
+
+    def __post_init__(self) -> None:
+        validate_on_init(self)
 
     def validate(self, path: str = "state") -> StateConfig:
         from .encodings import ENCODINGS
@@ -32,17 +35,39 @@ class MDPConfig:
     gamma_tick: float = 0.998  # discount per tick (throughput): gamma_tick^dt per step
     rho: float = 0.115  # reference trips per tick subtracted every tick (throughput)
 
+    def __post_init__(self) -> None:
+        validate_on_init(self)
+
     def validate(self, path: str = "mdp") -> MDPConfig:
         from .objectives import OBJECTIVES  # numpy and torch: not for composing a config
 
         check_range(f"{path}.tau_e", self.tau_e, 1, 10**9)
         check_choice(f"{path}.reward", self.reward, tuple(OBJECTIVES))
-        check_range(f"{path}.p_f", self.p_f, 0.0, None)
-        check_range(f"{path}.p_q", self.p_q, 0.0, None)
+        # rewards are float32: a cost beyond 1e9 (squared in a TD loss) overflows to inf
+        check_range(f"{path}.p_f", self.p_f, 0.0, 1e9, allowed="[0, 1e9] (rewards are float32)")
+        check_range(f"{path}.p_q", self.p_q, 0.0, 1e9, allowed="[0, 1e9] (rewards are float32)")
         check_range(f"{path}.gamma", self.gamma, 0.0, 1.0)
         check_range(f"{path}.gamma_tick", self.gamma_tick, 0.0, 1.0)
         check_range(f"{path}.rho", self.rho, 0.0, 1.0)
         return self
+
+    @classmethod
+    def coerce(cls, value: MDPConfig | dict | None, path: str = "mdp") -> MDPConfig:
+        """``value`` as a validated decision process: an :class:`MDPConfig` (checked as it
+        stands), a dict of its fields, or None (the defaults)."""
+        if value is None:
+            return cls()
+        if isinstance(value, cls):
+            return value.validate(path)
+        if isinstance(value, dict):
+            known = {f.name for f in fields(cls)}
+            extra = sorted(str(k) for k in value if k not in known)
+            if extra:
+                raise ConfigError(f"{path}.{extra[0]} is not a setting of {path} (allowed: "
+                                  f"{', '.join(sorted(known))})")
+            return cls(**value)
+        raise ConfigError(f"{path}={value!r} is invalid: allowed an MDPConfig, a dict of its "
+                          "fields, or None")
 
     @property
     def objective(self):

@@ -33,12 +33,23 @@ training sites exactly, also in the middle of episodes.
 
 Besides ``observation`` the environment reports per-episode counters ``trips``,
 ``queue_ticks`` and ``ticks`` (cumulative since the site's reset) for logging.
+
+Bad input is refused, not guessed at (:func:`check_actions`, the one rule of this environment
+and both Gymnasium/SB3 adapters): an action is ``0`` (pass) or ``1`` (charge), one per site,
+given as integers or booleans (a float only if it is exactly ``0.0`` or ``1.0``); anything
+else (``2``, ``-1``, ``0.7``, NaN, a missing action, the wrong number of actions) raises a
+one-line ``ValueError`` naming the value. ``num_sites`` is an integer >= 1 and a seed an
+integer in ``[0, 2**32 - 1]`` (the counter-based random numbers hash 32 bits of it: a larger
+seed would silently alias a smaller one).
 """
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import fields
+from typing import Any
 
+import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
@@ -50,8 +61,90 @@ from ..sim.rollout import advance, advance_eager
 from .config import MDPConfig
 from .encodings import get_encoding
 
+#: the action rule of the environment and both adapters (:func:`check_actions`)
+ACTION_RULE = "0 (pass) or 1 (charge), as integers or booleans"
+MAX_SEED = 2**32 - 1  # the random numbers hash 32 bits of a seed (sim/rng.py)
 _MAX_REDRAWS = 100
 _NO_LIMIT = 1 << 62  # tick limit of the run to the first decision (none)
+
+
+def _first_bad(t: torch.Tensor) -> Any:
+    """The first value of ``t`` that is neither 0 nor 1 (NaN included), as a Python number."""
+    bad = ~((t == 0) | (t == 1))
+    v = t[bad].reshape(-1)[0].item()
+    return f"{v:g}" if isinstance(v, float) else v
+
+
+def check_actions(action: Any, n: int, name: str = "action") -> torch.Tensor:
+    """The actions of ``n`` sites as an int64 tensor ``[n]``, or a one-line ``ValueError``.
+
+    The one rule of :class:`FleetChargingEnv`, ``FleetGymEnv`` and ``FleetVecEnv``: one
+    action per site (shape ``[n]``, ``[n, 1]``, or a scalar for one site), each ``0``
+    (pass) or ``1`` (charge), given as integers or booleans; a float is accepted only when it
+    is exactly ``0.0`` or ``1.0`` (what a network's argmax cast to float gives). ``2``,
+    ``-1``, ``0.7``, NaN, a string or a missing action are refused, never read as "charge"
+    or rounded."""
+    if action is None:
+        raise ValueError(f"no {name} given: allowed {ACTION_RULE}, one per site ({n})")
+    t = action
+    if not isinstance(t, torch.Tensor):
+        try:
+            arr = np.asarray(action)
+        except (TypeError, ValueError):
+            arr = None
+        if arr is None or arr.dtype.kind not in "biuf":
+            raise ValueError(f"{name}={action!r} is invalid: allowed {ACTION_RULE}")
+        t = torch.as_tensor(arr)
+    if not (t.dtype == torch.bool or t.dtype.is_floating_point or t.dtype in _INT_DTYPES):
+        raise ValueError(f"{name} of dtype {t.dtype} is invalid: allowed {ACTION_RULE}")
+    shape = tuple(t.shape)
+    ok = (t.dim() == 0 and n == 1) or (t.dim() >= 1 and shape[0] == n and t.numel() == n)
+    if not ok:
+        raise ValueError(f"{name} of shape {list(shape)} is invalid for {n} site(s): allowed "
+                         f"one action per site, shape [{n}] or [{n}, 1]")
+    t = t.reshape(n)
+    if t.dtype == torch.bool:
+        return t.to(torch.int64)
+    if not bool(((t == 0) | (t == 1)).all()):
+        raise ValueError(f"{name}={_first_bad(t)} is invalid: allowed {ACTION_RULE}")
+    return t.to(torch.int64)
+
+
+_INT_DTYPES = tuple(getattr(torch, n) for n in ("uint8", "int8", "int16", "int32", "int64",
+                                                 "uint16", "uint32", "uint64")
+                    if hasattr(torch, n))
+
+
+def check_seed(seed: Any, name: str = "seed") -> int:
+    """``seed`` as an int in ``[0, 2**32 - 1]``, or a one-line ``ValueError``
+    (:class:`~fleet_torchrl.utils.checks.ConfigError`)."""
+    from ..utils.checks import ConfigError
+
+    if isinstance(seed, torch.Tensor) and seed.numel() == 1 and not seed.dtype.is_floating_point:
+        seed = seed.item()
+    if not isinstance(seed, numbers.Integral) or isinstance(seed, bool) or \
+            not 0 <= int(seed) <= MAX_SEED:
+        raise ConfigError(f"{name}={seed!r} is invalid: allowed an integer in [0, {MAX_SEED}]")
+    return int(seed)
+
+
+def check_num_sites(num_sites: Any) -> int:
+    """``num_sites`` as an int >= 1, or a one-line ``ValueError`` (``ConfigError``)."""
+    from ..utils.checks import ConfigError
+
+    if not isinstance(num_sites, numbers.Integral) or isinstance(num_sites, bool) or \
+            int(num_sites) < 1:
+        raise ConfigError(f"num_sites={num_sites!r} is invalid: allowed an integer >= 1")
+    return int(num_sites)
+
+
+def check_env_memory(site: SiteConfig, num_sites: int) -> None:
+    """Refuse ``num_sites`` sites that would not fit in memory, before allocating them."""
+    from ..sim.config import site_bytes
+    from ..utils.resources import check_memory
+
+    check_memory("num_sites", num_sites, 2 * num_sites * site_bytes(site),
+                 "the environment's sites")
 
 
 def step_ticks(td: TensorDictBase) -> torch.Tensor:
@@ -79,10 +172,15 @@ class FleetChargingEnv(EnvBase):
     def __init__(self, site: SiteConfig | None = None, encoding: str = "partial",
                  num_sites: int = 1, mdp: MDPConfig | None = None, seed: int = 0,
                  device: str | torch.device = "cpu", fused: bool | None = None) -> None:
+        num_sites = check_num_sites(num_sites)
+        seed = check_seed(seed)
+        site = SiteConfig.coerce(site)
+        mdp = MDPConfig.coerce(mdp)
+        check_env_memory(site, num_sites)
         super().__init__(device=device, batch_size=torch.Size([num_sites]))
         self.fused = _fused.use_fused(self.device, fused)
-        self.site_cfg = site or SiteConfig()
-        self.mdp = mdp or MDPConfig()
+        self.site_cfg = site
+        self.mdp = mdp
         self.site = Site(self.site_cfg, self.device)
         self.encoding = get_encoding(encoding)
         self.num_sites = b = num_sites
@@ -103,7 +201,7 @@ class FleetChargingEnv(EnvBase):
             truncated=Categorical(2, shape=(b, 1), dtype=torch.bool, device=dev),
             shape=(b,), device=dev,
         )
-        self._seed = rng.training_seed(int(seed))
+        self._seed = rng.training_seed(seed)
         # episode counter of every slot: with the seed, the whole state a checkpoint needs
         self.register_buffer("episodes", torch.zeros(b, dtype=torch.int64, device=dev))
         self._arange = torch.arange(b, device=dev)
@@ -114,7 +212,7 @@ class FleetChargingEnv(EnvBase):
 
     # ------------------------------------------------------------------ TorchRL hooks
     def _set_seed(self, seed: int | None) -> None:
-        self._seed = rng.training_seed(int(seed) if seed is not None else 0)
+        self._seed = rng.training_seed(check_seed(seed) if seed is not None else 0)
         self.episodes.zero_()
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
@@ -129,8 +227,8 @@ class FleetChargingEnv(EnvBase):
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         b = self.num_sites
         s, m = self.state, self.mdp
-        self.site.decide(s, torch.ones(b, dtype=torch.bool, device=self.device),
-                         tensordict.get("action").reshape(b))
+        action = check_actions(tensordict.get("action", None), b).to(self.device)
+        self.site.decide(s, torch.ones(b, dtype=torch.bool, device=self.device), action)
         # every site to its next decision, failure or tau_e (one kernel call, or tick by tick)
         ev = advance(self.site, s, self._hash, m.tau_e, fused=self.fused)
         self._trips += ev.trips

@@ -17,6 +17,13 @@ observations, rewards and flags (one step = one decision epoch, MODEL §2).
   ``infos[i]["TimeLimit.truncated"]``, as SB3's own vectorised environments do.
 
 Inside TorchRL, use :class:`FleetChargingEnv` directly: it already is a batched ``EnvBase``.
+
+Both adapters check what they are given with the environment's own rules
+(:func:`~fleet_torchrl.env.fleet_env.check_actions`): an action is ``0`` (pass) or ``1``
+(charge) as an integer or a boolean (a float only if exactly ``0.0`` or ``1.0``), one per
+site; ``0.7``, NaN, ``2``, ``-1`` raise a one-line ``ValueError`` (never ``int(0.7) == 0``,
+never "anything non-zero charges"). Seeds are integers in ``[0, 2**32 - 1]``; ``site`` and
+``mdp`` may be given as dicts of their fields (``gymnasium.make(GYM_ID, site={"p_c": 0.6})``).
 """
 
 from __future__ import annotations
@@ -31,11 +38,10 @@ except ImportError:  # one line that says what to install, not a traceback into 
                       "pip install 'fleet_torchrl[gym]' (in a checkout: pip install -e "
                       "'.[gym]')") from None
 import numpy as np
-import torch
 
 from ..sim import SiteConfig
 from .config import MDPConfig
-from .fleet_env import FleetChargingEnv
+from .fleet_env import FleetChargingEnv, check_actions, check_seed
 
 GYM_ID = "FleetCharging-v0"
 #: the id that needs no import first: Gymnasium imports the module, which registers GYM_ID
@@ -64,16 +70,18 @@ class FleetGymEnv(gymnasium.Env):
         self._td = None
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
+        if seed is not None:
+            seed = check_seed(seed)
         super().reset(seed=seed)
         if seed is not None:
-            self.env.set_seed(int(seed))
+            self.env.set_seed(seed)
         self._td = self.env.reset()
         return self._td["observation"][0].numpy().copy(), _info(self._td)
 
     def step(self, action):
         if self._td is None:
             raise RuntimeError("call reset() before step()")
-        td = self._td.set("action", torch.as_tensor([int(action)], dtype=torch.int64))
+        td = self._td.set("action", check_actions(action, 1))
         td = self.env.step(td)
         nxt = td["next"]
         obs = nxt["observation"][0].numpy().copy()
@@ -112,17 +120,19 @@ if VecEnv is not None:
             seed = self._seeds[0] if getattr(self, "_seeds", None) and \
                 self._seeds[0] is not None else None
             if seed is not None:
-                self.env.set_seed(int(seed))
+                self.env.set_seed(check_seed(seed))
             if hasattr(self, "_reset_seeds"):
                 self._reset_seeds()
             self._td = self.env.reset()
             return self._td["observation"].numpy().copy()
 
         def step_async(self, actions) -> None:
-            self._actions = torch.as_tensor(np.asarray(actions), dtype=torch.int64)
+            if self._td is None:
+                raise RuntimeError("call reset() before step()")
+            self._actions = check_actions(actions, self.num_envs, "actions")
 
         def step_wait(self):
-            td = self._td.set("action", self._actions.reshape(self.num_envs))
+            td = self._td.set("action", self._actions)
             td, root = self.env.step_and_maybe_reset(td)
             nxt = td["next"]
             done = nxt["done"][:, 0].numpy().copy()

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ..utils.checks import check_choice, check_device, check_range
+from ..utils.checks import check_choice, check_device, check_range, validate_on_init
 
 BACKENDS = ("auto", "eager", "fused")
 
@@ -30,6 +30,9 @@ class EvalConfig:
     # at a time; fused: the compiled loop on CPU (other devices run eager). Same records.
     backend: str = "auto"
 
+    def __post_init__(self) -> None:
+        validate_on_init(self)
+
     def validate(self, path: str = "eval") -> EvalConfig:
         check_range(f"{path}.n_sims", self.n_sims, 1, 10**8)
         check_range(f"{path}.ticks", self.ticks, 1, 10**9)
@@ -38,3 +41,13 @@ class EvalConfig:
         check_device(f"{path}.device", self.device)
         check_choice(f"{path}.backend", self.backend, BACKENDS)
         return self
+
+
+# a simulation's records in a result (four Python ints in lists, a CSV row, a JSON entry)
+RECORD_BYTES = 1500
+
+
+def eval_bytes(site_bytes: int, n_sims: int, sites_per_sim: int = 1) -> int:
+    """Memory of an evaluation of ``n_sims`` simulations (``sites_per_sim`` sites in flight
+    for each: more for a planner, whose futures are sites too) with its records."""
+    return n_sims * (site_bytes * sites_per_sim + RECORD_BYTES)

@@ -9,7 +9,6 @@ from __future__ import annotations
 import functools
 import hashlib
 import math
-import os
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +16,7 @@ import torch
 from torch import Tensor
 
 from ..sim import Site
+from ..utils.paths import check_output
 from ..utils.runinfo import csv_text, file_sha256, read_json, write_json, write_text
 
 
@@ -150,21 +150,12 @@ def record_rows(result: dict[str, Any]) -> list[dict[str, Any]]:
                                                  rec["ticks_survived"], strict=True))]
 
 
-def check_result_path(path: str | Path) -> Path:
-    """Fail early, in one line, if a result cannot be written to ``path`` (and its ``.csv``):
-    wrong suffix, a directory in the way, or a folder that cannot be created or written."""
-    path = Path(path)
-    if path.suffix != ".json":
-        raise ValueError(f"result path must end in .json, got {path}")
-    for p in (path, path.with_suffix(".csv")):
-        if p.is_dir():
-            raise IsADirectoryError(f"cannot write the result {p}: it is a directory")
-    folder = path.parent
-    while not folder.exists() and folder != folder.parent:
-        folder = folder.parent
-    if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
-        raise PermissionError(f"cannot write the result {path}: {folder} is not a writable "
-                              "folder")
+def check_result_path(path: str | Path, setting: str = "eval.out") -> Path:
+    """Fail early, in one line naming ``setting``, if a result cannot be written to ``path``
+    (and its ``.csv``): wrong suffix, a folder in the way, a folder that cannot be created or
+    written, a pseudo file system (:func:`fleet_torchrl.utils.paths.check_output`)."""
+    path = check_output(setting, path, "file", suffix=".json")
+    check_output(setting, path.with_suffix(".csv"), "file")
     return path
 
 
@@ -175,7 +166,7 @@ def save_result(result: dict[str, Any], path: str | Path) -> tuple[Path, Path]:
     (:func:`check_result_pair`)."""
     path = Path(path)
     if path.suffix != ".json":
-        raise ValueError(f"result path must end in .json, got {path}")
+        raise ValueError(f"a result path must end in .json, got {path}")
     csv_path = path.with_suffix(".csv")
     text = csv_text(record_rows(result), CSV_FIELDS)
     write_text(csv_path, text)  # the hash is of what this writer wrote, not read back
@@ -196,11 +187,38 @@ def check_result_pair(path: str | Path) -> dict[str, Any]:
     return res
 
 
+RECORD_KEYS = ("trips", "queue", "failed", "ticks_survived")
+
+
 def load_result(path: str | Path) -> dict[str, Any]:
+    """A result file, checked: a JSON object with its setup and one record per simulation,
+    every trip count a finite number >= 0 (a damaged or foreign file is refused in one line
+    rather than compared into ``+nan %``)."""
     res = read_json(path)
+    if not isinstance(res, dict):
+        raise ValueError(f"{path} is not an evaluation result (a JSON object expected, got "
+                         f"{type(res).__name__})")
     missing = [k for k in ("policy", "seed", "n_sims", "ticks", "records") if k not in res]
     if missing:
         raise ValueError(f"{path} is not an evaluation result (missing {', '.join(missing)})")
+    n, rec = res["n_sims"], res["records"]
+    if not isinstance(n, int) or isinstance(n, bool) or n < 1:
+        raise ValueError(f"{path} is not an evaluation result (n_sims={n!r}: allowed an "
+                         "integer >= 1)")
+    if not isinstance(rec, dict) or not isinstance(rec.get("trips"), list):
+        raise ValueError(f"{path} is not an evaluation result (records.trips missing)")
+    for key in RECORD_KEYS:
+        values = rec.get(key)
+        if values is None and key != "trips":
+            continue
+        if not isinstance(values, list) or len(values) != n:
+            length = len(values) if isinstance(values, list) else type(values).__name__
+            raise ValueError(f"{path} is not an evaluation result (records.{key} holds "
+                             f"{length} values for n_sims={n})")
+        if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                   and v >= 0 for v in values if key != "failed"):
+            raise ValueError(f"{path} is not an evaluation result (records.{key} holds a value "
+                             "that is not a finite number >= 0)")
     return res
 
 

@@ -2,9 +2,18 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
-from ..utils.checks import ConfigError, check_choice, check_range
+from ..sim.config import MAX_NODES
+from ..utils.checks import (
+    ConfigError,
+    check_choice,
+    check_device,
+    check_range,
+    check_types,
+    validate_on_init,
+)
 
 # overrides a recipe may not set: the table sets them for each training seed
 TABLE_SETS = ("seed", "resume", "train.out_dir", "train.device", "train.progress")
@@ -20,7 +29,10 @@ class Recipe:
     overrides: list[str] = field(default_factory=list)
     preview: list[str] = field(default_factory=list)
 
-    def validate(self, path: str) -> Recipe:
+    def __post_init__(self) -> None:
+        validate_on_init(self)
+
+    def validate(self, path: str = "recipe") -> Recipe:
         if not self.overrides:
             raise ConfigError(f"{path}.overrides=[] is invalid: allowed a list of training "
                               "overrides, at least agent=<learner>")
@@ -76,14 +88,20 @@ class TableConfig:
     only: list[str] | None = None  # some of the recipes (e.g. [dqn_partial,search]); null: all
     preview: bool = False  # append each recipe's preview budget (make quick)
 
-    def validate(self, recipes: tuple[str, ...] = (), path: str = "table") -> TableConfig:
+    def __post_init__(self) -> None:
+        validate_on_init(self)
+
+    def validate(self, recipes: tuple[str, ...] | None = None, path: str = "table"
+                 ) -> TableConfig:
+        """Own ranges; with ``recipes`` (the root's check) also the names of ``only``."""
         check_range(f"{path}.seeds", self.seeds, 1, 1000)
         check_range(f"{path}.improve_sims", self.improve_sims, 0, 10**7)
-        for i, name in enumerate(self.only or []):
-            check_choice(f"{path}.only[{i}]", name, recipes)
         if self.only is not None and not self.only:
             raise ConfigError(f"{path}.only=[] is invalid: allowed null (every recipe) or "
-                              f"some of {', '.join(recipes)}")
+                              f"some of {', '.join(recipes or ())}")
+        if recipes is not None:
+            for i, name in enumerate(self.only or []):
+                check_choice(f"{path}.only[{i}]", name, recipes)
         return self
 
     def names(self, recipes: dict[str, Recipe]) -> list[str]:
@@ -143,8 +161,26 @@ class SweepConfig:
     pick_ticks: int = 10_000
     search_dir: str = "results/search"
 
-    def validate(self, known: tuple[str, ...], path: str = "sweep") -> SweepConfig:
+    def __post_init__(self) -> None:
+        validate_on_init(self)
+
+    def validate(self, known: tuple[str, ...] | None = None, path: str = "sweep"
+                 ) -> SweepConfig:
+        """Own fields; with ``known`` (the root's check: baselines and recipes) also the
+        names of ``policies``. The point's value is checked for its parameter: an integer
+        parameter takes an integer (2.7 vehicles is no site), within the site field's
+        bounds (the root also checks ``n_vehicles`` against the site's nodes); a packaged
+        sweep's name keeps its parameter, so no point is filed under another sweep."""
         check_choice(f"{path}.param", self.param, SWEEP_PARAMS)
+        check_sweep_value(self.param, self.value, path=path)
+        want = PACKAGED_SWEEPS.get(self.name)
+        if want is not None and self.param != want:
+            raise ConfigError(f"{path}.name={self.name!r} is invalid with {path}.param="
+                              f"{self.param}: results/sweeps/{self.name}/ holds the {want} "
+                              f"sweep; name a sweep of {self.param} otherwise "
+                              f"(e.g. {path}.name={self.param}_mine)")
+        if not self.name or "/" in self.name or self.name in (".", ".."):
+            raise ConfigError(f"{path}.name={self.name!r} is invalid: allowed a folder name")
         check_range(f"{path}.pick_sims", self.pick_sims, 1, 10**7)
         check_range(f"{path}.pick_ticks", self.pick_ticks, 1, 10**8)
         check_range(f"{path}.improve_sims", self.improve_sims, 0, 10**7)
@@ -154,7 +190,7 @@ class SweepConfig:
                                   "allowed row names start with 'search' (search_threshold)")
             check_overrides(f"{path}.searches.{label}", overrides, ("agent", "train", "seed"))
         check_overrides(f"{path}.planner_overrides", self.planner_overrides, ("agent",))
-        for i, name in enumerate(self.policies):
+        for i, name in enumerate(self.policies if known is not None else ()):
             check_choice(f"{path}.policies[{i}]", name, known)
         for i, name in enumerate(self.improve):
             check_choice(f"{path}.improve[{i}]", name, (*self.policies, "best_learned", "best"))
@@ -179,6 +215,26 @@ def check_overrides(path: str, overrides: list[str], groups: tuple[str, ...]) ->
 
 
 SWEEP_PARAMS = ("p_c", "t_c", "n_vehicles")
+# the packaged sweeps (conf/experiment/sweep_<name>.yaml) and the parameter each varies
+PACKAGED_SWEEPS = {"pc": "p_c", "tc": "t_c", "nv": "n_vehicles"}
+# the site field's bounds (sim/config.py: SiteConfig.validate; n_vehicles: the largest site)
+SWEEP_BOUNDS = {"p_c": (0.0, 1.0), "t_c": (1, 100_000), "n_vehicles": (1, MAX_NODES - 2)}
+
+
+def check_sweep_value(param: str, value: float, hi: float | None = None,
+                      path: str = "sweep") -> None:
+    """A sweep point's value for its parameter: no rounding (an integer parameter takes an
+    integer), within the site field's bounds (``hi``: a tighter upper bound, e.g. the
+    vehicles a site of ``n_nodes`` holds)."""
+    lo, top = SWEEP_BOUNDS[param]
+    top = top if hi is None else min(top, hi)
+    integer = param != "p_c"
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and \
+        math.isfinite(value) and (not integer or float(value).is_integer())
+    if not ok or not lo <= value <= top:
+        kind = "an integer" if integer else "a number"
+        raise ConfigError(f"{path}.value={value} is invalid for {path}.param={param}: "
+                          f"allowed {kind} in [{lo}, {top}]")
 
 
 @dataclass
@@ -195,8 +251,12 @@ class MapsConfig:
     planner_sims: int = 200
     planner_ticks: int = 5000
 
-    def validate(self, known: tuple[str, ...], path: str = "maps") -> MapsConfig:
-        for i, name in enumerate(self.policies):
+    def __post_init__(self) -> None:
+        validate_on_init(self)
+
+    def validate(self, known: tuple[str, ...] | None = None, path: str = "maps"
+                 ) -> MapsConfig:
+        for i, name in enumerate(self.policies if known is not None else ()):
             check_choice(f"{path}.policies[{i}]", name, known)
         check_range(f"{path}.planner_sims", self.planner_sims, 1, 100_000)
         check_range(f"{path}.planner_ticks", self.planner_ticks, 1, 10**7)
@@ -210,6 +270,9 @@ class ObjectiveConfig:
     n_sites: int = 200  # one episode of mdp.tau_e ticks per site
     seed: int = 7  # training-style sites (rng.training_seed), apart from both eval sets
     out: str = "results/objective"
+
+    def __post_init__(self) -> None:
+        validate_on_init(self)
 
     def validate(self, path: str = "objective") -> ObjectiveConfig:
         check_range(f"{path}.n_sites", self.n_sites, 1, 10**7)
@@ -231,6 +294,9 @@ class BenchConfig:
     training: bool = True  # every recipe's training throughput (conf/recipes/)
     out: str | None = None  # also write the figures as JSON
 
+    def __post_init__(self) -> None:
+        validate_on_init(self)
+
     def validate(self, path: str = "bench") -> BenchConfig:
         if not self.batches:
             raise ConfigError(f"{path}.batches=[] is invalid: allowed a list of batch sizes")
@@ -240,6 +306,7 @@ class BenchConfig:
         check_range(f"{path}.repeats", self.repeats, 1, 1000)
         if self.env_steps is not None:
             check_range(f"{path}.env_steps", self.env_steps, 1, 10**7)
+        check_device(f"{path}.device", self.device)
         return self
 
 
@@ -253,6 +320,9 @@ class CompareConfig:
 
     result: str | None = None  # a result JSON (fleet-evaluate eval.out=...)
     baseline: str | None = None  # the result it is compared with (same eval.seed: paired)
+
+    def __post_init__(self) -> None:
+        check_types(self, "compare")  # the paths are the command's to require
 
     def validate(self) -> CompareConfig:
         for name in ("result", "baseline"):
@@ -270,6 +340,9 @@ class ReportConfig:
     results: str = "results"  # the folder the experiments wrote
     out: str = "docs/report.md"
 
+    def __post_init__(self) -> None:
+        check_types(self, "report")
+
 
 @dataclass
 class GridSummaryConfig:
@@ -277,6 +350,9 @@ class GridSummaryConfig:
 
     sweep_dir: str | None = None  # a grid multirun's folder; null: the latest in multirun/grid
     out: str = "results/grid"  # where a copy of the summary goes
+
+    def __post_init__(self) -> None:
+        check_types(self, "grid")
 
 
 @dataclass
@@ -288,3 +364,6 @@ class SweepSummaryConfig:
     # point names expected (p_c=0.0, ...), reported if missing; null: the points of the
     # packaged experiment conf/experiment/sweep_<name>.yaml (none for another name)
     expect: list[str] | None = None
+
+    def __post_init__(self) -> None:
+        check_types(self, "sweeps_summary")

@@ -11,6 +11,7 @@ their best evaluation trips, failure rate breaking ties the other way. Writes ``
 
 from __future__ import annotations
 
+import math
 import statistics
 from pathlib import Path
 from typing import Any
@@ -27,19 +28,69 @@ def _split(overrides: list[str]) -> dict[str, str]:
     return dict(o.split("=", 1) for o in overrides if "=" in o and not o.startswith("+"))
 
 
+BEST_KEYS = ("trips", "gain_pct", "failure_rate", "queue")  # what fleet-train records
+
+
+def _yaml(path: Path) -> Any:
+    try:
+        return yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError):
+        return None
+
+
+def grid_job(job: Path) -> list[str] | None:
+    """The overrides of ``job`` if it is a job folder of a multirun of ``fleet-train`` (what
+    ``make grid`` makes: ``.hydra/hydra.yaml`` of a train job in MULTIRUN mode, its
+    overrides a list of ``key=value``), else None: folders of other runs are not summarised."""
+    meta = _yaml(job / ".hydra" / "hydra.yaml")
+    hydra = meta.get("hydra") if isinstance(meta, dict) else None
+    if not isinstance(hydra, dict) or str(hydra.get("mode")) != "MULTIRUN" or \
+            (hydra.get("job") or {}).get("name") != "train":
+        return None
+    overrides = _yaml(job / ".hydra" / "overrides.yaml")
+    if overrides is None:
+        overrides = []
+    if not isinstance(overrides, list) or not all(isinstance(o, str) for o in overrides):
+        return None
+    return overrides
+
+
+def finished_best(job: Path) -> dict[str, Any] | None:
+    """The best evaluation a finished train job recorded (``train_summary.json``), or None
+    if it did not finish or its summary is not one ``fleet-train`` writes."""
+    summary = job / "train_summary.json"
+    if not summary.is_file():
+        return None
+    try:
+        best = read_json(summary).get("best")
+    except (ValueError, AttributeError):
+        return None
+    if not isinstance(best, dict) or not all(
+            isinstance(best.get(k), (int, float)) and math.isfinite(best[k]) for k in BEST_KEYS):
+        return None
+    return best
+
+
 def collect(sweep_dir: Path) -> tuple[list[dict[str, Any]], list[str], dict[str, str]]:
     """Finished jobs, missing jobs, and the overrides shared by all jobs.
 
     A job's ``config`` names only the overrides that vary across the sweep (seed excluded).
+    Only job folders of a ``fleet-train`` multirun count (:func:`grid_job`); a folder
+    without any raises ``FileNotFoundError`` (nothing is written for it).
     """
     raw, missing = [], []
     for job in sorted(p for p in sweep_dir.iterdir() if p.is_dir() and (p / ".hydra").is_dir()):
-        overrides = yaml.safe_load((job / ".hydra" / "overrides.yaml").read_text()) or []
-        summary = job / "train_summary.json"
-        if not summary.exists():
+        overrides = grid_job(job)
+        if overrides is None:
+            continue
+        best = finished_best(job)
+        if best is None:
             missing.append(f"{job.name}: {' '.join(overrides)}")
             continue
-        raw.append((job.name, _split(overrides), read_json(summary).get("best") or {}))
+        raw.append((job.name, _split(overrides), best))
+    if not raw and not missing:
+        raise FileNotFoundError(f"sweep_dir={sweep_dir} holds no grid runs (job folders of a "
+                                "fleet-train multirun, make grid); nothing was written")
     keys = {k for _, o, _ in raw for k in o if k != "seed"}
     varying = {k for k in keys if len({o.get(k) for _, o, _ in raw}) > 1}
     shared = {k: raw[0][1][k] for k in sorted(keys - varying) if k in raw[0][1]} if raw else {}

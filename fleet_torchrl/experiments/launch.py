@@ -21,12 +21,23 @@ from __future__ import annotations
 import os
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from hydra.experimental.callback import Callback
 
 BASIC_SWEEPER = "hydra._internal.core_plugins.basic_sweeper.BasicSweeper"
+
+
+@dataclass
+class JobFailed:
+    """What a task returns for a job that failed without stopping the others (a sweep point
+    writes its ``.error`` and returns this): :class:`JobProgress` counts it like a job that
+    raised, and the multirun exits with code 1 once every job has run."""
+
+    label: str
+    reason: str
 
 
 def sweep_jobs(config: Any) -> tuple[list[list[str]], list[str]] | None:
@@ -79,13 +90,26 @@ class JobProgress(Callback):
         (Path(self.folder) / "total").write_text(str(total))
 
     def on_multirun_end(self, config: Any, **kwargs: Any) -> None:
+        """Clean up the counters; if a job failed (raised, or returned :class:`JobFailed`),
+        say which in one line and exit with code 1: the other jobs ran, but the multirun did
+        not do what it was asked."""
         import shutil
 
+        failed: list[str] = []
         if self.folder is not None:
+            record = Path(self.folder) / "failed"
+            if record.is_file():
+                failed = [ln for ln in record.read_text().splitlines() if ln.strip()]
+            total = Path(self.folder) / "total"
+            total = total.read_text().strip() if total.is_file() else "?"
             shutil.rmtree(self.folder, ignore_errors=True)
             parent = Path(self.folder).parent
             if parent.is_dir() and not any(parent.iterdir()):
                 parent.rmdir()
+        if failed:
+            print(f"error: {len(failed)} of {total} jobs failed: {'; '.join(failed)}",
+                  file=sys.stderr, flush=True)
+            sys.exit(1)
 
     # ---------------------------------------------------------------- each job's process
     def on_job_start(self, config: Any, **kwargs: Any) -> None:
@@ -95,12 +119,22 @@ class JobProgress(Callback):
         if self.folder is None or not Path(self.folder).is_dir():
             return  # a single run, or a multirun whose size nobody knows
         folder = Path(self.folder)
+        failure = None
+        value = getattr(job_return, "_return_value", None)  # never re-raises a job's error
+        if getattr(job_return.status, "name", str(job_return.status)) != "COMPLETED":
+            failure = f"{self.label(config)} ({type(value).__name__})"
+        elif isinstance(value, JobFailed):
+            failure = f"{self.label(config)} ({value.reason})"
         with _locked(folder / "lock"):
             with open(folder / "done", "a") as f:
                 f.write(f"{config.hydra.job.num}\n")
+            if failure is not None:
+                with open(folder / "failed", "a") as f:
+                    f.write(failure.replace("\n", " ") + "\n")
             done = len((folder / "done").read_text().split())
         total = (folder / "total").read_text().strip() if (folder / "total").exists() else "?"
-        status = getattr(job_return.status, "name", str(job_return.status)).lower()
+        status = "failed" if failure is not None else \
+            getattr(job_return.status, "name", str(job_return.status)).lower()
         print(f"[{self.name}] {done} of {total} jobs done: {self.label(config)} ({status}, "
               f"{time.perf_counter() - self._t0:.0f} s)", flush=True)
 
@@ -152,10 +186,17 @@ class TableSweep:
 
         from ..config import to_config, without_hydra
         from ..utils.cli import user_errors
-        from .table import evaluate_table, plan_jobs, recorded_train_time, training_seeds
+        from .table import (
+            check_outputs,
+            evaluate_table,
+            plan_jobs,
+            recorded_train_time,
+            training_seeds,
+        )
 
         with user_errors():
             cfg = to_config(without_hydra(self.config))
+            check_outputs(cfg)
         runs_dir = cfg.table.runs_dir
         with read_write(self.config.hydra), open_dict(self.config.hydra):
             self.config.hydra.sweep.dir = runs_dir  # where the launcher creates its folders
@@ -204,4 +245,4 @@ def _torch_threads(n: int | None = None) -> int | None:
     return torch.get_num_threads()
 
 
-__all__ = ["JobProgress", "TableSweep", "sweep_jobs"]
+__all__ = ["JobFailed", "JobProgress", "TableSweep", "sweep_jobs"]

@@ -221,7 +221,28 @@ def point_key(cfg: Config, site: SiteConfig, search_cfgs: dict[str, Config],
 
 
 def point_value(param: str, value: float) -> float | int:
-    return int(round(value)) if param in ("t_c", "n_vehicles") else float(value)
+    """The point's value as the site field takes it (validated: an integer parameter's value
+    is integral, never rounded here)."""
+    return int(value) if param in ("t_c", "n_vehicles") else float(value)
+
+
+def check_point_outputs(cfg: Config) -> None:
+    """Before a point computes: its folder and the searches' cache can be written, and its
+    sweep folder holds no points of another parameter (``results/sweeps/<name>/`` is one
+    sweep; mixing two would plot p_c and N_V points on one axis)."""
+    from ..utils.paths import check_output
+
+    folder = Path(cfg.sweep.out) / cfg.sweep.name
+    check_output("sweep.out", folder, "dir")
+    check_output("sweep.search_dir", cfg.sweep.search_dir, "dir")
+    if folder.is_dir():
+        others = sorted({f.name.split("=", 1)[0] for f in folder.iterdir()
+                         if "=" in f.name and f.suffix in (".json", ".error")}
+                        - {cfg.sweep.param})
+        if others:
+            raise ConfigError(f"sweep.name={cfg.sweep.name!r} is invalid with sweep.param="
+                              f"{cfg.sweep.param}: {folder} holds a sweep of {others[0]}; "
+                              "give this sweep a name of its own")
 
 
 def point_path(cfg: Config) -> Path:
@@ -273,6 +294,7 @@ def seed_row(name: str, per_seed: dict[int, dict[str, Any]], rule: dict[str, Any
 
 def run_point(cfg: Config) -> list[dict[str, Any]] | None:
     """Evaluate every row at this job's point; returns the rows (None if already done)."""
+    check_point_outputs(cfg)
     path = point_path(cfg)
     param = cfg.sweep.param
     value = point_value(param, cfg.sweep.value)

@@ -38,13 +38,23 @@ def summarize(name: str, out: Path, expect: list[str] | None = None) -> dict:
         raise FileNotFoundError(f"no sweep results in {folder}; run `make sweep-{name}` first")
     rows, done = [], []
     for f in sorted(folder.glob("*.json")):
-        rows += read_json(f)["rows"]
+        point = read_json(f)
+        if not isinstance(point, dict) or not isinstance(point.get("rows"), list) or not all(
+                isinstance(r, dict) and {"param", "value", "policy"} <= r.keys()
+                for r in point["rows"]):
+            raise ValueError(f"{f} is not a sweep point's result (rows of param, value, "
+                             "policy); move it out of the sweep's folder")
+        rows += point["rows"]
         done.append(f.stem)
     failed = sorted(f.stem for f in folder.glob("*.error"))
     missing = [v for v in (expect or []) if v not in done and v not in failed]
     if not rows:
         raise FileNotFoundError(f"no finished point in {folder}")
-    param = rows[0]["param"]
+    params = sorted({r["param"] for r in rows})
+    if len(params) > 1:
+        raise ValueError(f"{folder} mixes the sweeps of {', '.join(params)}: a sweep varies "
+                         "one parameter; give each its own sweep.name")
+    param = params[0]
     rows.sort(key=lambda r: (r["value"], r["policy"]))
     write_csv(out / f"{name}.csv", [{**r, "seeds": " ".join(map(str, r.get("seeds", []))),
                                      "gain_per_seed": " ".join(f"{g:.4f}" for g in

@@ -199,6 +199,17 @@ def plan_training(name: str, seed: int, cfg: Config, progress: bool = False
     return job
 
 
+def check_outputs(cfg: Config) -> None:
+    """Before any training: every folder the table writes can be written (a
+    ``table.policies_dir`` that is a file would otherwise be found after the trainings)."""
+    from ..utils.paths import check_output
+
+    check_output("table.policies_dir", cfg.table.policies_dir, "dir")
+    check_output("table.runs_dir", cfg.table.runs_dir, "dir")
+    if cfg.table.evaluate:
+        check_output("table.out", cfg.table.out, "dir")
+
+
 def plan_jobs(cfg: Config, progress: bool = False) -> list[TableJob]:
     """The trainings the table needs, recipe by recipe and seed by seed (reused policies
     left out); ``progress``: whether a job may show its progress bar (one job at a time)."""

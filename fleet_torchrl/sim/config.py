@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
-from ..utils.checks import ConfigError, check_range
+from ..utils.checks import ConfigError, check_range, validate_on_init
 
 MAX_NODES = 62  # occupancy of a site is one 64-bit mask
 
@@ -19,13 +19,26 @@ class SiteRanges:
     p_c: list[float] | None = None  # closure probability in [0, 1]
     t_c: list[int] | None = None  # T_C, integers >= 1
 
-    def validate(self, site: SiteConfig, path: str = "site.ranges") -> SiteRanges:
-        bounds = {"n_vehicles": (1, site.n_nodes - 2), "p_c": (0.0, 1.0), "t_c": (1, 100_000)}
+    def __post_init__(self) -> None:
+        validate_on_init(self)
+
+    def validate(self, site: SiteConfig | None = None, path: str = "site.ranges"
+                 ) -> SiteRanges:
+        """Each range ``[low, high]`` within its parameter's bounds (``n_vehicles``: those of
+        ``site``'s nodes; without a site, of the largest site)."""
+        n_nodes = site.n_nodes if site is not None else MAX_NODES
+        bounds = {"n_vehicles": (1, n_nodes - 2), "p_c": (0.0, 1.0), "t_c": (1, 100_000)}
         for name, (lo, hi) in bounds.items():
             r = getattr(self, name)
             if r is None:
                 continue
-            if len(r) != 2 or r[0] > r[1]:
+            if not isinstance(r, (list, tuple)) or len(r) != 2 or \
+                    not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in r):
+                raise ConfigError(f"{path}.{name}={r!r} is invalid: allowed [low, high] "
+                                  "with low <= high, or null (the site's own value)")
+            if name != "p_c" and not all(float(v).is_integer() for v in r):
+                raise ConfigError(f"{path}.{name}={list(r)} is invalid: allowed integers")
+            if r[0] > r[1]:
                 raise ConfigError(f"{path}.{name}={list(r)} is invalid: allowed [low, high] "
                                   "with low <= high, or null (the site's own value)")
             for k, v in enumerate(r):
@@ -55,6 +68,36 @@ class SiteConfig:
     leave_when_full: bool = True  # a charging vehicle that reaches soc 100 stops charging
     ranges: SiteRanges | None = None  # a site distribution (site=randomized); None = one site
 
+    def __post_init__(self) -> None:
+        validate_on_init(self)
+
+    @classmethod
+    def coerce(cls, value: SiteConfig | dict | None, path: str = "site") -> SiteConfig:
+        """``value`` as a validated site: a :class:`SiteConfig` (checked as it stands now: it
+        may have been changed since it was built), a dict of its fields (``ranges`` a dict
+        too; what ``gymnasium.make(..., site={...})`` passes) or None (the default site)."""
+        if value is None:
+            return cls()
+        if isinstance(value, cls):
+            return value.validate(path)
+        if isinstance(value, dict):
+            known = {f.name for f in fields(cls)}
+            extra = sorted(str(k) for k in value if k not in known)
+            if extra:
+                raise ConfigError(f"{path}.{extra[0]} is not a setting of {path} (allowed: "
+                                  f"{', '.join(sorted(known))})")
+            values = dict(value)
+            ranges = values.get("ranges")
+            if isinstance(ranges, dict):
+                bad = sorted(str(k) for k in ranges if k not in ("n_vehicles", "p_c", "t_c"))
+                if bad:
+                    raise ConfigError(f"{path}.ranges.{bad[0]} is not a setting of "
+                                      f"{path}.ranges (allowed: n_vehicles, p_c, t_c)")
+                values["ranges"] = SiteRanges(**ranges)
+            return cls(**values)
+        raise ConfigError(f"{path}={value!r} is invalid: allowed a SiteConfig, a dict of its "
+                          "fields, or None")
+
     @property
     def max_vehicles(self) -> int:
         """Vehicles per site in the state tensors: ``n_vehicles``, or the top of its range."""
@@ -83,5 +126,17 @@ class SiteConfig:
         check_range(f"{path}.closed_node", self.closed_node, 4, self.n_nodes - 1,
                     allowed=f"a road node in [4, n_nodes - 1 = {self.n_nodes - 1}]")
         if self.ranges is not None:
+            if not isinstance(self.ranges, SiteRanges):
+                raise ConfigError(f"{path}.ranges={self.ranges!r} is invalid: allowed a "
+                                  "SiteRanges or null")
             self.ranges.validate(self, f"{path}.ranges")
         return self
+
+
+def site_bytes(site: SiteConfig) -> int:
+    """Memory of one simulated site in flight, on the high side: its state and parameters,
+    the per-site counters of a run, and the transient tensors of its initial draw (one
+    value per node) and of a kernel call (measured: about 500 bytes for the default site in
+    an evaluation, 800 in the environment). What :mod:`fleet_torchrl.utils.resources`
+    multiplies by the sites a setting asks for."""
+    return 400 + 24 * site.n_nodes + 64 * site.max_vehicles

@@ -294,9 +294,9 @@ def _advance_cpu(site: Site, state: SiteState, site_hash: Tensor, max_ticks: Ten
         with _pool_lock:
             numba.set_num_threads(threads)
             _pool["pid"] = os.getpid()
-            _k.advance_parallel(*args)
+            _k.call("advance_parallel", *args)
     else:
-        _k.advance_serial(*args)
+        _k.call("advance_serial", *args)
     i, f = [torch.from_numpy(r) for r in ints], [torch.from_numpy(r) for r in flags]
     return Events(ticks=i[0], trips=i[1], queue=i[2], arrived=f[0], failed=f[1], queued=f[2])
 

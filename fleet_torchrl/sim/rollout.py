@@ -69,7 +69,11 @@ def run_sites(decide: Decide, site_cfg: SiteConfig, n_sims: int, ticks: int, see
     ``True`` forces it, ``False`` runs the eager tick loop
     (:func:`fleet_torchrl.sim.fused.use_fused`). ``kernel_policy``: the same decisions as
     ``decide``, taken inside the kernel (the eager loop ignores it and calls ``decide``)."""
+    from ..utils.resources import check_memory
+    from .config import site_bytes
+
     device = torch.device(device)
+    check_memory("n_sims", n_sims, n_sims * site_bytes(site_cfg), "the simulated sites")
     if site_index is None:
         site_index = torch.arange(n_sims, dtype=torch.int64)
     elif site_index.shape != (n_sims,):

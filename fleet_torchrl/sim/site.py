@@ -140,6 +140,7 @@ class Site:
     """A site model on a device: the tick rules, initial states and closure draws."""
 
     def __init__(self, cfg: SiteConfig, device: torch.device | str = "cpu") -> None:
+        cfg.validate()  # as it stands now (a site with no vehicle would never reach a decision)
         self.cfg = cfg
         self.device = torch.device(device)
         n = self.n_nodes = cfg.n_nodes

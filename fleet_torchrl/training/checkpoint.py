@@ -64,3 +64,19 @@ def checkpoint_mismatch(path: str | Path, cfg: Config) -> list[str]:
     if stored is None:
         return ["the checkpoint records no configuration (written by an older version)"]
     return fingerprint_diff(stored, training_fingerprint(cfg))
+
+
+def check_resumable(path: str | Path, cfg: Config) -> None:
+    """Raise unless the checkpoint at ``path`` can continue a run of ``cfg``: missing
+    (``FileNotFoundError``), unreadable or of other settings (``ValueError``, naming the
+    fields that differ). What a resume checks before it writes anything."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"resume=true, but there is no checkpoint at {path}: point "
+                                "hydra.run.dir at the run to continue, or start a new run "
+                                "without resume=true")
+    diff = checkpoint_mismatch(path, cfg)
+    if diff:
+        raise ValueError(f"cannot resume from {path}: it belongs to another configuration "
+                         f"({'; '.join(diff[:5])}); resume with the same settings or start a "
+                         "new run directory")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ..utils.checks import check_choice, check_device, check_range
+from ..utils.checks import check_choice, check_device, check_range, validate_on_init
 
 SELECTIONS = ("objective", "trips", "robust")
 
@@ -26,6 +26,9 @@ class TrainConfig:
     threads: int = 0  # torch CPU threads; 0 = torch's default
     tensorboard: bool = True
     progress: bool = True
+
+    def __post_init__(self) -> None:
+        validate_on_init(self)
 
     def validate(self, path: str = "train") -> TrainConfig:
         check_range(f"{path}.max_episodes", self.max_episodes, 1, None)

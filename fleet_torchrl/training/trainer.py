@@ -49,7 +49,7 @@ from tensordict import TensorDict, TensorDictBase
 
 from ..agents.base import Policy
 from ..agents.baselines import HeuristicPolicy, RulePolicy
-from ..agents.policy_files import POLICY_FILE, save_policy
+from ..agents.policy_files import POLICY_FILE, first_non_finite, save_policy
 from ..agents.registry import LearnerContext, get_agent
 from ..env import FleetChargingEnv
 from ..evaluation import evaluate_policy, gain_over, site_strata, worst_stratum_gain
@@ -58,7 +58,7 @@ from ..utils.monitor import Monitor
 from ..utils.numerics import flush_denormals
 from ..utils.plotting import plot_policy_map
 from ..utils.runinfo import run_info, write_json
-from .checkpoint import CHECKPOINT, UNREADABLE, checkpoint_mismatch, training_fingerprint
+from .checkpoint import CHECKPOINT, UNREADABLE, check_resumable, training_fingerprint
 from .progress import EvalEntry, Progress, selection_score
 
 Config = Any  # the root ``Config``, duck-typed: this layer sits below it
@@ -151,6 +151,7 @@ class Trainer:
         self.out_dir = default_policy_dir(cfg)
         self.device = torch.device(cfg.train.device)
         self.n_rounds = cfg.agent.training_rounds(cfg.train)
+        self._say_budget()
         self.progress = Progress()
         self._next: TensorDictBase | None = None
         self._episode_reward: torch.Tensor | None = None
@@ -161,6 +162,20 @@ class Trainer:
         self.setup_evaluation()
         self.setup_monitor()
         self.setup_checkpoint()
+
+    def _say_budget(self) -> None:
+        """Say so when ``train.max_episodes`` is not what runs: the budget is whole rounds
+        of ``agent.num_sites`` episodes, so ``train.max_episodes=1`` trains 256 episodes."""
+        from ..agents.config import AgentConfig
+
+        c = self.cfg
+        if type(c.agent).training_rounds is not AgentConfig.training_rounds:
+            return  # a learner with a budget of its own (generations, rounds)
+        episodes = self.n_rounds * c.agent.num_sites
+        if episodes != c.train.max_episodes:
+            log.warning("train.max_episodes=%d is not a multiple of agent.num_sites=%d: "
+                        "training runs %d round(s) = %d episodes", c.train.max_episodes,
+                        c.agent.num_sites, self.n_rounds, episodes)
 
     # ------------------------------------------------------------------ setup stages
     def setup_env(self) -> None:
@@ -213,17 +228,9 @@ class Trainer:
                                        "config": training_fingerprint(self.cfg)})
 
     def load_checkpoint(self) -> bool:
-        if not self.checkpoint_path.exists():
-            raise FileNotFoundError(f"resume=true, but there is no checkpoint at "
-                                    f"{self.checkpoint_path}: point hydra.run.dir at the run to "
-                                    "continue, or start a new run without resume=true")
         from torchrl.checkpoint import CheckpointError
 
-        diff = checkpoint_mismatch(self.checkpoint_path, self.cfg)
-        if diff:
-            raise ValueError(f"cannot resume from {self.checkpoint_path}: it belongs to another "
-                             f"configuration ({'; '.join(diff[:5])}); resume with the same "
-                             "settings or start a new run directory")
+        check_resumable(self.checkpoint_path, self.cfg)
         try:
             self.checkpoint.load(self.checkpoint_path, map_location=self.device)
         except (CheckpointError, *UNREADABLE) as e:
@@ -271,6 +278,7 @@ class Trainer:
     # ------------------------------------------------------------------ evaluation
     def evaluate(self, step: int) -> EvalEntry:
         pol, c = self.policy(), self.cfg
+        self.check_finite(pol)
         res = evaluate_policy(pol, name=self.name, **self.eval_args)
         gain = gain_over(res, self.rule_eval)["gain_pct"]
         p = self.progress
@@ -310,6 +318,18 @@ class Trainer:
             self.monitor.figure("policy_map/best", fig, step)
             plt.close(fig)
         return entry
+
+    def check_finite(self, pol: Policy) -> None:
+        """Stop a training whose policy's weights hold NaN or inf (an overflowing reward, a
+        learning rate too large): its evaluations would rank garbage and its best snapshot
+        could be published. Raises ``ValueError`` (one line: the commands' exit code 2);
+        nothing is published, the checkpoint of the last good round stays."""
+        bad = first_non_finite(pol.state_dict())
+        if bad is not None:
+            raise ValueError(
+                f"training {self.name} diverged by round {self.progress.round}: the policy's "
+                f"weights hold NaN or inf ({bad}); nothing is published. Lower the rewards' "
+                "scale (mdp.p_f, mdp.p_q, agent.reward_scale) or the learning rate")
 
     def save_best(self, path: Path | None = None) -> str:
         """Write the best policy so far (default: into the run's own folder); returns the

@@ -6,12 +6,89 @@ Every schema validates its own fields with these helpers; a failure raises
 
 from __future__ import annotations
 
+import contextvars
+import functools
+import inspect
 import math
+import numbers
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import fields
 from typing import Any
 
 
 class ConfigError(ValueError):
     """A configuration value outside its allowed range (message names the field)."""
+
+
+class SetupError(RuntimeError):
+    """Something of this machine stops a run (e.g. a compiled kernel that cannot be built),
+    said in one line with what to do instead; the commands report it like a bad value."""
+
+
+# Schemas validate themselves on construction (:func:`validate_on_init`), so a config built
+# in Python is checked like one given on the command line. Inside :func:`deferred_validation`
+# they do not: OmegaConf builds a composed config bottom-up, where a nested schema cannot
+# know its path (``agent.expert`` vs ``agent``) nor check the other groups, and the root's
+# validation (``fleet_torchrl.config.validate``) runs right after, in the commands' order.
+_DEFERRED: contextvars.ContextVar[bool] = contextvars.ContextVar("fleet_deferred", default=False)
+
+
+@contextmanager
+def deferred_validation() -> Iterator[None]:
+    """Construct schemas without validating them here (the caller validates the whole)."""
+    token = _DEFERRED.set(True)
+    try:
+        yield
+    finally:
+        _DEFERRED.reset(token)
+
+
+@functools.cache
+def _schema_path(cls: type) -> str:
+    """A schema's place in the root config: the default ``path`` of its ``validate``."""
+    param = inspect.signature(cls.validate).parameters.get("path")
+    return param.default if param is not None and isinstance(param.default, str) else \
+        cls.__name__
+
+
+# field annotations (strings: the schemas use ``from __future__ import annotations``) whose
+# values are checked by type on construction; anything else is left to ``validate``
+_SCALARS = {"int": ("an integer", numbers.Integral), "float": ("a number", numbers.Real),
+            "str": ("a string", str), "bool": ("true or false", bool)}
+
+
+def check_types(obj: Any, path: str) -> None:
+    """Raise :class:`ConfigError` for a field of a plain scalar type (``int``, ``float``,
+    ``str``, ``bool``, or one of them ``| None``) that holds a value of another type: a
+    config built in Python is not type-checked by OmegaConf (``n_vehicles=2.7``)."""
+    for f in fields(obj):
+        ann = f.type if isinstance(f.type, str) else getattr(f.type, "__name__", "")
+        optional = ann.endswith(" | None")
+        kind = _SCALARS.get(ann.removesuffix(" | None"))
+        if kind is None:
+            continue
+        value = getattr(obj, f.name)
+        if value is None and optional:
+            continue
+        words, types = kind
+        ok = isinstance(value, types) and (types is bool or not isinstance(value, bool))
+        if ok and types is numbers.Integral:
+            value = int(value)
+        if not ok:
+            raise ConfigError(f"{path}.{f.name}={_fmt(value)} is invalid: allowed {words}"
+                              + (" or null" if optional else ""))
+
+
+def validate_on_init(obj: Any) -> None:
+    """What a schema's ``__post_init__`` does: check its field types and call its own
+    ``validate()`` (checks of its own fields; what depends on other groups is the root's),
+    unless inside :func:`deferred_validation`."""
+    if _DEFERRED.get():
+        return
+    path = _schema_path(type(obj))
+    check_types(obj, path)
+    obj.validate()
 
 
 def _fmt(v: Any) -> str:
@@ -38,6 +115,10 @@ def check_choice(path: str, value: Any, choices: tuple[str, ...] | list[str]) ->
 
 def check_device(path: str, device: str) -> None:
     """A torch device string that exists on this machine."""
+    if device == "cpu":  # the default: no torch import (composing a config stays light)
+        return
+    if not isinstance(device, str):
+        raise ConfigError(f"{path}={_fmt(device)} is invalid: allowed cpu, cuda, cuda:N, mps")
     import torch
 
     try:

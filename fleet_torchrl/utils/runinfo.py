@@ -23,25 +23,53 @@ PACKAGES = (PROJECT, "torch", "torchrl", "tensordict", "hydra-core", "omegaconf"
 PACKAGE_DIR = Path(__file__).resolve().parents[1]  # .../fleet_torchrl
 
 
+class WriteError(OSError):
+    """A file that cannot be written, named by its own path (never the temp file's) in one
+    line; the commands report it like a bad value."""
+
+
+def current_umask() -> int:
+    """The process's file-creation mask (read from ``/proc/self/status`` where there is
+    one: setting and restoring it with ``os.umask`` would race with other threads)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 def atomic_write(path: str | os.PathLike, write: Callable[[Any], None], mode: str = "w") -> Path:
     """Write via ``write(fileobj)`` to a temp file in the same folder, then rename over ``path``.
 
-    A crash mid-write leaves the previous file intact and no partial file behind.
+    A crash mid-write leaves the previous file intact and no partial file behind. The file
+    gets the mode any new file of the user gets (``0o666`` less the umask): ``mkstemp``
+    makes its temp file ``0o600``, which would leave results unreadable to the rest of a team
+    sharing a file system. A failure to write raises :class:`WriteError` naming ``path``.
     """
     path = Path(path)
     if path.exists() and path.is_dir():
         raise IsADirectoryError(f"cannot write {path}: it is a directory")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as e:
+        raise WriteError(f"cannot write {path}: {e.strerror or e}") from None
+    try:
+        os.fchmod(fd, 0o666 & ~current_umask())
         with os.fdopen(fd, mode) as f:
             write(f)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         if os.path.exists(tmp):
             os.unlink(tmp)
+        if isinstance(e, OSError) and not isinstance(e, WriteError):
+            raise WriteError(f"cannot write {path}: {e.strerror or e}") from None
         raise
     return path
 

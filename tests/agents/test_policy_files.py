@@ -38,10 +38,11 @@ def test_policy_files_round_trip_and_reject_bad_input(tmp_path):
         load_policy_file(tmp_path / "foreign.pt")
 
 
-def test_policy_files_written_before_the_spec_rename_still_load(tmp_path):
+def test_policy_files_written_before_the_spec_rename_still_load(tmp_path, caplog):
     """``Policy.spec()`` became ``policy_spec()`` (it shadowed TorchRL's ``spec`` attribute);
     the file keeps its ``spec`` key, so a file written before the rename, built here by hand
-    as the old code wrote it, loads, and new files keep that layout."""
+    as the old code wrote it, loads (with a one-line warning: it records no hash of its
+    weights), and new files keep that layout plus the hash."""
     from fleet_torchrl.agents.dqn import DQNPolicy, NetworkConfig
     from fleet_torchrl.agents.policy_files import FORMAT, policy_bytes
 
@@ -54,10 +55,13 @@ def test_policy_files_written_before_the_spec_rename_still_load(tmp_path):
                                       "others_below": pol.base.others_below}},
            "state_dict": {k: v.detach() for k, v in pol.state_dict().items()}, "meta": {}}
     torch.save(old, tmp_path / "old.pt")
-    back = load_policy_file(tmp_path / "old.pt")
+    with caplog.at_level("WARNING"):
+        back = load_policy_file(tmp_path / "old.pt")
+    warned = [r.getMessage() for r in caplog.records if "records no hash" in r.getMessage()]
+    assert len(warned) == 1 and "\n" not in warned[0] and "old.pt" in warned[0]
     assert isinstance(back, DQNPolicy) and back.anchor == "heuristic"
     assert back.anchor_margin == 2.0 and back.network == net
     obs = torch.rand(200, 3)
     assert torch.equal(back(obs), pol(obs))
     new = torch.load(io.BytesIO(policy_bytes(pol, "dqn")), weights_only=True)
-    assert new.keys() == old.keys() and new["spec"] == old["spec"]
+    assert new.keys() == old.keys() | {"tensors_sha256"} and new["spec"] == old["spec"]

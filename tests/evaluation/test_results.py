@@ -75,20 +75,22 @@ def test_gain_over_a_baseline_without_trips_is_a_clear_error():
 
 def test_bad_output_paths_fail_before_the_simulation(tmp_path):
     """A directory in the way or a folder that cannot be written: one line, exit 2, at once
-    (1000 x 10 000 would take seconds; the error comes before any simulation)."""
+    (1000 x 10 000 would take seconds; the error comes before any simulation, and before
+    Hydra makes the run folder)."""
     import subprocess
     import sys
     import time
 
     (tmp_path / "taken.json").mkdir()
-    for out, msg in ((tmp_path / "taken.json", "is a directory"),
-                     (tmp_path / "x.txt", "must end in .json")):
+    for out, msg in ((tmp_path / "taken.json", "it is a folder"),
+                     (tmp_path / "x.txt", "allowed a path ending in .json")):
         t0 = time.perf_counter()
         r = subprocess.run([sys.executable, "-m", "fleet_torchrl.evaluate", "eval.n_sims=100000",
                             f"eval.out={out}", f"hydra.run.dir={tmp_path / 'run'}"],
                            capture_output=True, text=True, timeout=120)
         assert r.returncode == 2 and msg in r.stderr.strip().splitlines()[-1], r.stderr
         assert r.stderr.count("error:") == 1 and time.perf_counter() - t0 < 60
+        assert not (tmp_path / "run").exists()
     from fleet_torchrl.evaluation.results import check_result_path
 
     locked = tmp_path / "locked"
@@ -96,7 +98,7 @@ def test_bad_output_paths_fail_before_the_simulation(tmp_path):
     locked.chmod(0o500)
     try:
         if not __import__("os").access(locked, __import__("os").W_OK):  # not as root
-            with pytest.raises(PermissionError, match="not a writable folder"):
+            with pytest.raises(ValueError, match="is not writable"):
                 check_result_path(locked / "r.json")
     finally:
         locked.chmod(0o700)

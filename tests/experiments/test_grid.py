@@ -16,6 +16,8 @@ def _fake_job(root, num, overrides, trips, failure=0.0):
     job = root / str(num)
     (job / ".hydra").mkdir(parents=True)
     (job / ".hydra" / "overrides.yaml").write_text(yaml.safe_dump(overrides))
+    (job / ".hydra" / "hydra.yaml").write_text(yaml.safe_dump(
+        {"hydra": {"mode": "MULTIRUN", "job": {"name": "train"}}}))
     if trips is not None:
         best = {"trips": trips, "gain_pct": trips / 3.4 - 100, "failure_rate": failure,
                 "queue": 10.0}

@@ -38,7 +38,10 @@ def test_mdp_score_ranks_by_reward_and_counts_like_the_protocol(tmp_path):
 
 
 def test_objective_cli(tmp_path):
+    """An empty folder of saved policies: the baselines only (a missing folder is refused:
+    it would look like a table without trained policies)."""
     out = tmp_path / "objective"
+    (tmp_path / "none").mkdir()
     r = subprocess.run([sys.executable, "-m", "fleet_torchrl.objective", "mdp.tau_e=300",
                         "objective.n_sites=8", f"objective.out={out}",
                         f"table.policies_dir={tmp_path / 'none'}",

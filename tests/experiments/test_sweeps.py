@@ -204,7 +204,10 @@ def test_miniature_sweep_end_to_end(tmp_path, saved_policies, command):
     bad = cmd[:5] + ["sweep.value=0.6"] + [c for c in cmd[6:] if "policies_dir" not in c] + [
         f"table.policies_dir={tmp_path / 'nowhere'}"]
     r3 = subprocess.run(bad, capture_output=True, text=True, timeout=300)
-    assert r3.returncode == 0 and (out / "pc" / "p_c=0.6.error").exists()
+    # a failed point is written beside the others and counts: the multirun exits 1
+    assert r3.returncode == 1 and (out / "pc" / "p_c=0.6.error").exists()
+    assert "error: point p_c=0.6 failed" in r3.stderr, r3.stderr
+    assert "error: 1 of 1 jobs failed: " in r3.stderr.strip().splitlines()[-1], r3.stderr
     assert command(sweeps_summary.main, "name=pc", f"out={out}") == 1  # failed, missing points
 
 

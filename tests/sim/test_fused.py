@@ -330,3 +330,65 @@ def test_objective_tables_grow_exactly():
     last = np.float32(np.float32(0.0) - np.float32(mdp.rho))
     want = np.float32(acc + np.float32(d * last))
     assert got[1].item() == float(want)
+
+
+def test_a_damaged_kernel_cache_is_found_by_its_hash_and_rebuilt(tmp_path, monkeypatch,
+                                                                   caplog):
+    """The manifest records each cached kernel file's SHA-256; a file that no longer matches
+    (a flipped byte that would still load) clears the cache with one warning line; files
+    it does not list (a signature compiled since) are not judged."""
+    from fleet_torchrl.sim import kernel
+
+    cleared = []
+    monkeypatch.setattr(kernel, "cache_dir", lambda: tmp_path)
+    monkeypatch.setattr(kernel, "clear_cache", lambda: cleared.append(1))
+    (tmp_path / "kernel.advance_serial-1.py311.1.nbc").write_bytes(b"machine code")
+    assert kernel.verify_cache() and not cleared  # no manifest yet: nothing to judge
+    kernel.write_manifest()
+    (tmp_path / "kernel.advance_serial-1.py311.2.nbc").write_bytes(b"new signature")
+    assert kernel.verify_cache() and not cleared
+    (tmp_path / "kernel.advance_serial-1.py311.1.nbc").write_bytes(b"machine coDe")
+    with caplog.at_level("WARNING"):
+        assert not kernel.verify_cache()
+    assert cleared == [1] and not (tmp_path / kernel.MANIFEST).exists()
+    warned = [r.getMessage() for r in caplog.records if "hash check" in r.getMessage()]
+    assert len(warned) == 1 and "\n" not in warned[0] and ".1.nbc" in warned[0]
+    (tmp_path / kernel.MANIFEST).write_text("{not json")  # a damaged manifest: rebuilt too
+    assert not kernel.verify_cache() and cleared == [1, 1]
+
+
+@pytest.mark.slow
+def test_a_corrupt_cached_kernel_is_rebuilt_with_one_warning(tmp_path):
+    """End to end, in fresh processes on a cache of their own: a flipped byte in a cached
+    kernel file, then an unreadable one; each next run warns once, rebuilds the cache and
+    gives the same trips (the first through the hash check, the second, without a
+    manifest, through the load that fails)."""
+    code = ("from fleet_torchrl.evaluation import evaluate_policy\n"
+            "from fleet_torchrl.agents.baselines import RulePolicy\n"
+            "from fleet_torchrl.sim import SiteConfig\n"
+            "r = evaluate_policy(RulePolicy(), SiteConfig(), n_sims=8, ticks=300, seed=0)\n"
+            "print('TRIPS', sum(r['records']['trips']))\n")
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache")}
+
+    def run():
+        r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                           text=True, timeout=300)
+        assert r.returncode == 0, r.stderr
+        return r.stdout.split("TRIPS")[-1].strip(), [ln for ln in r.stderr.splitlines()
+                                                      if "kernel" in ln]
+
+    trips, warned = run()
+    assert warned == []
+    for how in ("flip", "garble"):
+        f = sorted((tmp_path / "cache").rglob("kernel.advance_serial*.nbc"))[0]
+        raw = bytearray(f.read_bytes())
+        if how == "flip":
+            raw[len(raw) // 2] ^= 0x01
+        else:
+            for i in range(200, len(raw), 997):
+                raw[i] ^= 0xFF
+            next((tmp_path / "cache").rglob("fleet_torchrl_kernel.sha256.json")).unlink()
+        f.write_bytes(bytes(raw))
+        again, warned = run()
+        assert again == trips and len(warned) == 1 and "compiling the kernel again" in \
+            warned[0], warned
