@@ -2,9 +2,15 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
-from ..utils.checks import ConfigError, check_choice, check_range, validate_on_init
+from ..utils.checks import (
+    ConfigError,
+    check_choice,
+    check_known_fields,
+    check_range,
+    validate_on_init,
+)
 
 
 @dataclass
@@ -60,11 +66,7 @@ class MDPConfig:
         if isinstance(value, cls):
             return value.validate(path)
         if isinstance(value, dict):
-            known = {f.name for f in fields(cls)}
-            extra = sorted(str(k) for k in value if k not in known)
-            if extra:
-                raise ConfigError(f"{path}.{extra[0]} is not a setting of {path} (allowed: "
-                                  f"{', '.join(sorted(known))})")
+            check_known_fields(cls, value, path)
             return cls(**value)
         raise ConfigError(f"{path}={value!r} is invalid: allowed an MDPConfig, a dict of its "
                           "fields, or None")

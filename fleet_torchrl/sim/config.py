@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
-from ..utils.checks import ConfigError, check_range, validate_on_init
+from ..utils.checks import ConfigError, check_known_fields, check_range, validate_on_init
 
 MAX_NODES = 62  # occupancy of a site is one 64-bit mask
 
@@ -81,11 +81,7 @@ class SiteConfig:
         if isinstance(value, cls):
             return value.validate(path)
         if isinstance(value, dict):
-            known = {f.name for f in fields(cls)}
-            extra = sorted(str(k) for k in value if k not in known)
-            if extra:
-                raise ConfigError(f"{path}.{extra[0]} is not a setting of {path} (allowed: "
-                                  f"{', '.join(sorted(known))})")
+            check_known_fields(cls, value, path)
             values = dict(value)
             ranges = values.get("ranges")
             if isinstance(ranges, dict):

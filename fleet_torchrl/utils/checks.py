@@ -108,6 +108,16 @@ def check_range(path: str, value: Any, lo: float | None = None, hi: float | None
         raise ConfigError(f"{path}={_fmt(value)} is invalid: allowed {allowed}")
 
 
+def check_known_fields(cls: type, value: dict, path: str) -> None:
+    """A dict meant to build the dataclass ``cls`` holds only its fields (the first unknown
+    key is named, with the allowed ones)."""
+    known = {f.name for f in fields(cls)}
+    extra = sorted(str(k) for k in value if k not in known)
+    if extra:
+        raise ConfigError(f"{path}.{extra[0]} is not a setting of {path} (allowed: "
+                          f"{', '.join(sorted(known))})")
+
+
 def check_choice(path: str, value: Any, choices: tuple[str, ...] | list[str]) -> None:
     if value not in choices:
         raise ConfigError(f"{path}={_fmt(value)} is invalid: allowed one of {', '.join(choices)}")
