@@ -25,14 +25,16 @@ on CUDA it runs when numba-cuda finds the GPU. ``fused=False`` keeps the eager t
 everywhere (the reference the kernel is tested against).
 
 On the CPU a call with enough work (:func:`_worth_threads`) spreads the sites over
-``torch.get_num_threads()`` cores with numba's ``prange``. Threading layer (unless
-``NUMBA_THREADING_LAYER`` says otherwise): OpenMP where the machine has it, else numba's
-``workqueue``; measured on this project's 2-core machine, waking an OpenMP pool costs ~6 us
-and the workqueue ~170 us. An OpenMP pool spins after each call and then starves torch's
-own threads (an evaluation stopping at every decision for a forward pass ran 10x slower), so
-its spin is cut short (``GOMP_SPINCOUNT``, set before numba loads its OpenMP runtime; torch's
-is loaded already). GNU OpenMP does not survive a fork: a forked child of a process whose
-pool has run uses the one-core kernel. Calls from several Python threads take turns.
+``torch.get_num_threads()`` cores with numba's ``prange``, as many as the machine's load
+leaves idle (:func:`_idle_cores`: on a busy machine one core is several times faster).
+Threading layer (unless ``NUMBA_THREADING_LAYER`` says otherwise): OpenMP where the machine
+has it, else numba's ``workqueue``; measured on this project's 2-core machine, waking an
+OpenMP pool costs ~6 us and the workqueue ~170 us. An OpenMP pool spins after each call and
+then starves torch's own threads (an evaluation stopping at every decision for a forward pass
+ran 10x slower), so its spin is cut short (``GOMP_SPINCOUNT``, set before numba loads its
+OpenMP runtime; torch's is loaded already). GNU OpenMP does not survive a fork: a forked child
+of a process whose pool has run uses the one-core kernel. Calls from several Python threads
+take turns.
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ from __future__ import annotations
 import logging
 import os
 import threading
+import time
 from dataclasses import dataclass
 
 import numba
@@ -288,7 +291,7 @@ def _advance_cpu(site: Site, state: SiteState, site_hash: Tensor, max_ticks: Ten
     flags = np.empty((3, b), dtype=np.bool_)
     args = (pos, soc, left, charge, tick, hsh, limit, act, n_veh, t_c, gain, closure, tables,
             geo, energy, pol.kind, rows, thr, tab, pol.n_tc, ints, flags)
-    threads = min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)
+    threads = min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS, _idle_cores())
     forked = _pool["pid"] not in (None, os.getpid())  # a child of a process with a pool
     if threads > 1 and not forked and _worth_threads(b, limit, tick, pol):
         with _pool_lock:
@@ -305,6 +308,26 @@ def _advance_cpu(site: Site, state: SiteState, site_hash: Tensor, max_ticks: Ten
 # core; waking the pool: ~6 us with OpenMP, ~170 us with the workqueue)
 _PARALLEL_WORK = 4_000 if numba.config.THREADING_LAYER_PRIORITY[0] == "omp" else 50_000
 _TICKS_PER_DECISION = 10  # a site stopping at its next decision runs about this many ticks
+
+
+_LOAD = {"at": -1.0, "cores": 1}
+
+
+def _idle_cores() -> int:
+    """Cores this process may use for one call: the machine's, less the load of the other
+    runnable processes (the 1-minute load average, which counts this one; read at most once a
+    second). A parallel call waits for its slowest thread, and on a busy machine one of them
+    is often not running: measured on the 2-core VM with two other jobs running, environment
+    collection at B = 1024 made 95 000 decisions/s on two threads and 510 000 on one."""
+    now = time.monotonic()
+    if now - _LOAD["at"] > 1.0:
+        cores = os.cpu_count() or 1
+        try:
+            busy = os.getloadavg()[0] - 1.0
+        except (AttributeError, OSError):  # no load average on this platform
+            busy = 0.0
+        _LOAD.update(at=now, cores=max(1, int(cores - max(busy, 0.0) + 0.5)))
+    return int(_LOAD["cores"])
 
 
 def _worth_threads(b: int, limit: np.ndarray, tick: np.ndarray, pol: KernelPolicy) -> bool:

@@ -392,3 +392,15 @@ def test_a_corrupt_cached_kernel_is_rebuilt_with_one_warning(tmp_path):
         again, warned = run()
         assert again == trips and len(warned) == 1 and "compiling the kernel again" in \
             warned[0], warned
+
+
+def test_the_kernel_uses_the_cores_the_machine_leaves_idle(monkeypatch):
+    """A parallel call waits for its slowest thread: on a busy machine the kernel runs on the
+    cores the load average leaves idle (at least one), on a quiet one on all of them."""
+    from fleet_torchrl.sim import fused
+
+    monkeypatch.setattr(fused.os, "cpu_count", lambda: 2)
+    for load, cores in ((1.0, 2), (1.4, 2), (2.0, 1), (5.0, 1), (0.0, 2)):
+        monkeypatch.setattr(fused.os, "getloadavg", lambda load=load: (load, load, load))
+        monkeypatch.setitem(fused._LOAD, "at", -1e9)  # read it again
+        assert fused._idle_cores() == cores, load
