@@ -146,11 +146,13 @@ def _device(pol: Policy):
     return "cpu"
 
 
-def search_start(cfg: Config, run_cfg: Config, policies: dict[str, Policy]) -> str:
+def search_start(cfg: Config, run_cfg: Config, policies: dict[str, Policy],
+                 trained: dict[str, Path] | None = None) -> str:
     """The ``agent.init`` of a point's search: of the rule, the heuristic and the
     ``partial``-state policies of the point, the one whose start of the search (what its
     class can represent of it) does best on the point's pick set, as a baseline's name or a
-    saved policy's path."""
+    saved policy's path (``trained``: the policy files of the point's own earlier searches,
+    which are not under ``table.policies_dir``)."""
     best: tuple[tuple[float, float], str] | None = None
     for name, pol in policies.items():
         if pol.encoding != "partial":
@@ -163,6 +165,8 @@ def search_start(cfg: Config, run_cfg: Config, policies: dict[str, Policy]) -> s
     spec = AGENTS.get(best[1])
     if spec is not None and not spec.trainable:
         return best[1]
+    if trained and best[1] in trained:
+        return str(trained[best[1]])
     return str(saved_policy_path(cfg.table.policies_dir, best[1]))
 
 
@@ -331,16 +335,18 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
             groups[name] = {s: guard(_named(load_policy_file(p, e.device), name))
                             for s, p in seed_paths(cfg, name).items()}
     summaries: dict[str, Any] = {}
+    trained: dict[str, Path] = {}  # the point's own searches, possible starts of the next
     for name, run_cfg in search_cfgs.items():
         if cfg.sweep.search_seeded and not any(o.split("=", 1)[0].lstrip("+~") == "agent.init"
                                                for o in cfg.sweep.searches[name]):
             starts = {n: next(iter(g.values())) for n, g in groups.items()}
             run_cfg.agent.init = search_start(cfg, run_cfg, {
-                n: getattr(p, "policy", p) for n, p in starts.items()})
+                n: getattr(p, "policy", p) for n, p in starts.items()}, trained)
             print(f"[sweep] {label} {name}: starts from {run_cfg.agent.init}", flush=True)
         pol, summaries[name] = point_training(cfg, run_cfg, f"{label}/{name}")
         summaries[name]["init"] = run_cfg.agent.init
         groups[name] = {None: pol}
+        trained[name] = Path(run_cfg.train.out_dir) / POLICY_FILE
     for row, runs in specialist_cfgs.items():
         groups[row] = {}
         for seed, run_cfg in runs.items():

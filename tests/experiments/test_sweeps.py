@@ -80,6 +80,11 @@ def test_search_starts_from_the_points_best_partial_policy(saved_policies):
     assert search_start(cfg, thr_cfg, pols) in ("heuristic",
                                                  str(saved_policies / "dqn_partial" /
                                                      "policy.pt"))
+    # a point's earlier search (not under table.policies_dir) starts the next from its file
+    # (it failed T_C 40 and 50 when it was looked up as a saved policy)
+    pols = {"rule": load_policies(cfg, ["rule"])["rule"], "search_threshold": good}
+    trained = {"search_threshold": saved_policies / "good" / "policy.pt"}
+    assert search_start(cfg, run_cfg, pols, trained) == str(trained["search_threshold"])
 
 
 def test_best_known_is_the_best_row_on_the_pick_set():
