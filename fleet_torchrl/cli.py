@@ -33,7 +33,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
-from .config import Config, one_line, register_configs, to_config, without_hydra
+from .config import Config, mark_multirun, one_line, register_configs, to_config, without_hydra
 
 # launcher options (hydra/launcher=...) and the extra of pyproject.toml that provides them
 LAUNCHER_EXTRAS = {"ray": "ray", "ray_aws": "ray", "ray_cluster": "ray",
@@ -308,6 +308,7 @@ def hydra_command(task: Callable[[Any], Any], config_name: str = "config"
 
     def main() -> Any:
         register_configs()
+        mark_multirun(sys.argv[1:])
         with one_line_errors():
             return app()
 

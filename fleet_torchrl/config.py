@@ -97,6 +97,24 @@ def user_options_help() -> str:
     return f"\nYour own, from ./conf (conf/README.md):\n{lines}"
 
 
+RUN_PID = "FLEET_TORCHRL_RUN_PID"  # the pid of the command whose multirun this process runs
+
+
+def run_pid() -> int:
+    """``${fleet_pid:}`` of the run folders: the process id of the command, which keeps two
+    commands started in the same second apart. A multirun's workers (joblib, submitit, Ray)
+    resolve the sweep folder again: they read the launching command's id from the
+    environment it set (:func:`mark_multirun`), so every job lands in one sweep folder."""
+    return int(os.environ.get(RUN_PID) or os.getpid())
+
+
+def mark_multirun(argv: list[str]) -> None:
+    """In the command that launches a multirun (``-m``/``--multirun``), pass its process id
+    to the workers it starts (their ``${fleet_pid:}``)."""
+    if any(a in ("-m", "--multirun") for a in argv):
+        os.environ[RUN_PID] = str(os.getpid())
+
+
 def register_configs() -> None:
     """Register the schemas in Hydra's ConfigStore (idempotent), outside every config group
 (``schema_<group>``, ``schema_agent_<name>``): the YAML options extend them, and neither
@@ -111,7 +129,7 @@ def register_configs() -> None:
                             r"path=conf is not available", category=UserWarning)
     for name, resolver in (("fleet_user_options", user_options_help),
                            ("fleet_script", lambda job: f"fleet-{job.replace('_', '-')}"),
-                           ("fleet_pid", os.getpid)):  # run folders: unique per process
+                           ("fleet_pid", run_pid)):  # run folders: unique per command
         if not OmegaConf.has_resolver(name):
             OmegaConf.register_new_resolver(name, resolver)
     cs = ConfigStore.instance()

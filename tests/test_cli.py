@@ -184,3 +184,17 @@ def test_the_readme_and_the_makefile_name_every_command():
     block = quick.split("```bash\n")[1].split("```")[0]
     assert [ln.split("#")[0].strip() for ln in block.strip().splitlines()] == [
         "make table", "make test"]  # the Quickstart stays two commands
+
+
+def test_a_multiruns_jobs_share_one_sweep_folder(tmp_path):
+    """The joblib workers of a multirun resolve the sweep folder again: they use the launching
+    command's process id, so every job lands in one folder (the grid's summary read half of
+    its runs when each worker named the folder after itself)."""
+    cmd = [sys.executable, "-m", "fleet_torchrl.evaluate", "-m", "agent=heuristic,rule",
+           "eval.n_sims=2", "eval.ticks=20", "eval.progress=false", "hydra/launcher=local",
+           "hydra.launcher.n_jobs=2"]
+    r = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    sweeps = list((tmp_path / "multirun" / "evaluate").iterdir())
+    assert len(sweeps) == 1, sweeps
+    assert sorted(p.name for p in sweeps[0].iterdir() if p.is_dir()) == ["0", "1"]
