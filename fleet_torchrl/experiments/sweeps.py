@@ -51,8 +51,6 @@ from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
-import torch
-
 from ..agents import AGENTS, load_policy_file
 from ..agents.base import GuardedPolicy, Policy
 from ..agents.baselines import HeuristicPolicy
@@ -61,13 +59,12 @@ from ..agents.policy_files import POLICY_FILE
 from ..agents.search import SearchPolicy, cell_centres, clone_policy, threshold_start
 from ..config import Config, compose_config
 from ..evaluation import evaluate_policy, evaluate_with, gain_over, seed_interval
-from ..evaluation.results import t95
 from ..sim import SiteConfig
 from ..store import load_policies, saved_policy_path
 from ..training import Trainer, training_fingerprint
 from ..utils.checks import ConfigError
 from ..utils.runinfo import file_sha256, read_json, run_info, to_jsonable, write_json
-from .improvement import improvement
+from .improvement import improvement, paired_points
 from .table import reusable
 
 POINT_FIELDS = ("param", "value", "policy", "seeds", "trips_mean", "trips_std", "queue_mean",
@@ -428,16 +425,12 @@ def one_step(cfg: Config, site: SiteConfig, groups: dict[str, dict[int | None, P
     out: dict[str, dict[str, Any]] = {}
     if not cfg.sweep.planner or rule is None:
         return out
-    rule_trips = torch.tensor(rule["records"]["trips"], dtype=torch.float64)
     if ("heuristic", None) in results:
-        d = 100.0 * (torch.tensor(results[(PLANNER, None)]["records"]["trips"],
-                                  dtype=torch.float64)
-                     - torch.tensor(results[("heuristic", None)]["records"]["trips"],
-                                    dtype=torch.float64)) / float(rule_trips.mean())
-        n = d.numel()
-        out["heuristic"] = {"improvement_pct": float(d.mean()), "improvement_sims": n,
-                            "improvement_ci95": t95(n - 1) * float(d.std()) / n ** 0.5
-                            if n > 1 else None, "improvement_seed": None}
+        trips = {n: results[(n, None)]["records"]["trips"] for n in (PLANNER, "heuristic")}
+        pct, ci = paired_points(trips[PLANNER], trips["heuristic"], rule["records"]["trips"])
+        n = len(trips[PLANNER])
+        out["heuristic"] = {"improvement_pct": pct, "improvement_ci95": ci if n > 1 else None,
+                            "improvement_sims": n, "improvement_seed": None}
     if not cfg.sweep.improve_sims:
         return out
     for want in cfg.sweep.improve:
