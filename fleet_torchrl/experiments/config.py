@@ -153,6 +153,9 @@ class SweepConfig:
     # own records (columns improvement_*; the heuristic's from the planner row, every site)
     planner: bool = True
     planner_overrides: list[str] = field(default_factory=list)
+    # also the planner over the point's best search (row planner_search), where that search
+    # decides inside the kernel and beats the heuristic on the pick set
+    planner_search: bool = True
     improve: list[str] = field(default_factory=lambda: ["best_learned"])
     improve_sims: int = 30
     # the set best_known is picked on (the searches' selection seed, apart from eval.seed):

@@ -129,7 +129,8 @@ def build(results: Path, out: Path) -> str:
               "site distribution, MODEL §3.5), evaluated on changed sites, beside the point's "
               "own searches (`search_threshold`, `search_table`: MODEL §3.4, classes that "
               "read the charger's remaining time), the rollout planner over the heuristic "
-              "(`planner`, MODEL §3.6), and "
+              "(`planner`, MODEL §3.6) and over the point's best search where that search "
+              "beats the heuristic on the pick set (`planner_search`), and "
               "`best_known`: the best of all of them on the point's pick set (sites apart "
               "from the evaluation's; MODEL §5). "
               "Cells: trips gain over the rule in % ± 95% CI, in brackets the share of "
@@ -152,7 +153,8 @@ def build(results: Path, out: Path) -> str:
         if imp:
             parts += ["One step of policy improvement (the planner over the policy, paired "
                       "with its own records on the first sites of the evaluation; the "
-                      "heuristic's is the `planner` row on every site), in points of gain over "
+                      "heuristic's is the `planner` row on every site, a search's the "
+                      "`planner_search` row), in points of gain over "
                       "the rule ± 95% CI: where it is significantly positive the policy is not "
                       "optimal on that site.", "", imp, ""]
         png = results / "sweeps" / f"{name}.png"

@@ -21,11 +21,15 @@ sites):
   policy classes that read the charger's remaining time), each started from the best start
   of its class among the rule, the heuristic and every saved policy (``sweep.search_seeded``)
   and cached under ``sweep.search_dir/<point>/<key>`` by its training settings and start;
-* the rollout planner (MODEL §3.6) with the heuristic as base (row ``planner``); and what
-  one step of policy improvement adds to each policy of ``sweep.improve`` (``best_learned``:
-  the best learned row of the point): the planner over it on the first
+* the rollout planner (MODEL §3.6) with the heuristic as base (row ``planner``), and over
+  the point's best search where that search beats the heuristic on the pick set and decides
+  inside the kernel (row ``planner_search``, ``sweep.planner_search``: its rollouts cost
+  what the heuristic's do); and what one step of policy improvement adds to each policy
+  of ``sweep.improve`` (``best_learned``: the best learned row of the point): the planner
+  over it on the first
   ``sweep.improve_sims`` sites of the evaluation, paired with its own records (columns
-  ``improvement_*``; the heuristic's is the planner row, paired on every site). A network
+  ``improvement_*``; the heuristic's is the planner row and the search's the
+  ``planner_search`` row, paired on every site). A network
   base costs the planner milliseconds per decision (its rollouts' arrivals are decided by
   forward passes), hence a subset of the sites, and no row of its own;
 * ``best_known``: of all the rows above, the best on the point's *pick set* (the searches'
@@ -74,6 +78,7 @@ POINT_FIELDS = ("param", "value", "policy", "seeds", "trips_mean", "trips_std", 
 IMPROVEMENT_FIELDS = POINT_FIELDS[-4:]
 BEST_KNOWN = "best_known"  # the row of the best policy known at the point
 PLANNER = "planner"  # the rollout planner over the heuristic
+PLANNER_SEARCH = "planner_search"  # the rollout planner over the point's best search
 
 
 def digest(obj: Any) -> str:
@@ -216,6 +221,7 @@ def point_key(cfg: Config, site: SiteConfig, search_cfgs: dict[str, Config],
         "guard": s.guard, "seeds": "every seed of the learned policies",
         "search_seeded": s.search_seeded, "pick": [s.pick_sims, s.pick_ticks],
         "planner": asdict(planner_config(cfg)) if s.planner else None,
+        "planner_search": s.planner and s.planner_search,
         "improve": [list(s.improve), s.improve_sims],
         "best_known": "best of every row on the pick set (failures, then trips)"}
     return digest(parts)
@@ -354,6 +360,12 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
     if cfg.sweep.planner:
         groups[PLANNER] = {None: make_planner(cfg, HeuristicPolicy())}
         keys[(PLANNER, None)] = on_pick_set(cfg, site, groups[PLANNER][None])
+        base = search_base(cfg, groups, keys)
+        if base is not None:
+            groups[PLANNER_SEARCH] = {None: make_planner(cfg, groups[base][None])}
+            keys[(PLANNER_SEARCH, None)] = on_pick_set(cfg, site,
+                                                       groups[PLANNER_SEARCH][None])
+            print(f"[sweep] {label} {PLANNER_SEARCH}: the planner over {base}", flush=True)
     best = best_of(keys)
     print(f"[sweep] {label}: best known is {best[0]}"
           + (f" seed {best[1]}" if best[1] is not None else "")
@@ -413,6 +425,24 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
     return rows
 
 
+def search_base(cfg: Config, groups: dict[str, dict[int | None, Policy]],
+                keys: dict[tuple[str, int | None], tuple[float, float]]) -> str | None:
+    """The base of row ``planner_search`` (``sweep.planner_search``): the point's best search
+    on the pick set, if it decides inside the kernel (rollouts as cheap as the heuristic's)
+    and is better there than the heuristic (the ``planner`` row's base); else None."""
+    if not (cfg.sweep.planner and cfg.sweep.planner_search):
+        return None
+    pool = {k: v for k, v in keys.items() if k[0].startswith("search") and k[1] is None
+            and groups[k[0]][None].kernel_policy() is not None}
+    if not pool:
+        return None
+    best = best_of(pool)
+    heuristic = keys.get(("heuristic", None))
+    if heuristic is not None and not pool[best] < heuristic:
+        return None
+    return best[0]
+
+
 def one_step(cfg: Config, site: SiteConfig, groups: dict[str, dict[int | None, Policy]],
              keys: dict[tuple[str, int | None], tuple[float, float]],
              results: dict[tuple[str, int | None], dict[str, Any]],
@@ -425,12 +455,18 @@ def one_step(cfg: Config, site: SiteConfig, groups: dict[str, dict[int | None, P
     out: dict[str, dict[str, Any]] = {}
     if not cfg.sweep.planner or rule is None:
         return out
-    if ("heuristic", None) in results:
-        trips = {n: results[(n, None)]["records"]["trips"] for n in (PLANNER, "heuristic")}
-        pct, ci = paired_points(trips[PLANNER], trips["heuristic"], rule["records"]["trips"])
-        n = len(trips[PLANNER])
-        out["heuristic"] = {"improvement_pct": pct, "improvement_ci95": ci if n > 1 else None,
-                            "improvement_sims": n, "improvement_seed": None}
+    bases = {"heuristic": PLANNER}
+    base = search_base(cfg, groups, keys)
+    if base is not None and (PLANNER_SEARCH, None) in results:
+        bases[base] = PLANNER_SEARCH
+    for name, planner in bases.items():
+        if (name, None) not in results:
+            continue
+        trips = {n: results[(n, None)]["records"]["trips"] for n in (planner, name)}
+        pct, ci = paired_points(trips[planner], trips[name], rule["records"]["trips"])
+        n = len(trips[planner])
+        out[name] = {"improvement_pct": pct, "improvement_ci95": ci if n > 1 else None,
+                     "improvement_sims": n, "improvement_seed": None}
     if not cfg.sweep.improve_sims:
         return out
     for want in cfg.sweep.improve:

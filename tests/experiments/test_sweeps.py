@@ -102,6 +102,33 @@ def test_best_known_is_the_best_row_on_the_pick_set():
         "search_threshold"
 
 
+def test_planner_search_is_the_planner_over_the_best_search_that_beats_the_heuristic():
+    """Row planner_search: the planner over the point's best search on the pick set, only if
+    that search decides inside the kernel and beats the heuristic there."""
+    from fleet_torchrl.agents import HeuristicPolicy
+    from fleet_torchrl.agents.search import SearchPolicy
+    from fleet_torchrl.config import compose_config
+    from fleet_torchrl.experiments.sweeps import search_base
+
+    cfg = compose_config([])
+    groups = {"heuristic": {None: HeuristicPolicy()},
+              "search_threshold": {None: SearchPolicy("threshold")},
+              "search_table": {None: SearchPolicy("table", n_tc=4)},
+              "search_mlp": {None: SearchPolicy("mlp")},
+              "search": {0: SearchPolicy("table")}}  # the default-site search: not a point's
+    keys = {("heuristic", None): (0.0, -100.0), ("search_threshold", None): (0.0, -101.0),
+            ("search_table", None): (0.0, -102.0), ("search_mlp", None): (0.0, -110.0),
+            ("search", 0): (0.0, -120.0)}
+    assert search_base(cfg, groups, keys) == "search_table"  # the mlp has no kernel form
+    keys[("search_table", None)] = (0.01, -130.0)  # fails on the pick set: worse
+    assert search_base(cfg, groups, keys) == "search_threshold"
+    keys[("search_threshold", None)] = (0.0, -100.0)  # a tie with the heuristic: no row
+    assert search_base(cfg, groups, keys) is None
+    keys[("search_threshold", None)] = (0.0, -100.5)
+    assert search_base(compose_config(["sweep.planner_search=false"]), groups, keys) is None
+    assert search_base(compose_config(["sweep.planner=false"]), groups, keys) is None
+
+
 def test_a_sweep_on_a_site_distribution_is_refused():
     from fleet_torchrl.config import compose_config
     from fleet_torchrl.experiments.sweeps import run_point
@@ -138,8 +165,11 @@ def test_miniature_sweep_end_to_end(tmp_path, saved_policies, command):
     names = {"rule", "heuristic", "tabular", "dqn_partial", "search", "search_threshold",
              "search_table", "specialist_dqn", "specialist_tabular", "specialist_imitation",
              "planner", "best_known"}
-    assert {r["policy"] for r in rows} == names
-    assert len(rows) == 2 * 12
+    # planner_search: at a point whose best search beats the heuristic on the pick set
+    extra = {v: {r["policy"] for r in rows if r["value"] == v} - names for v in ("0.4", "0.8")}
+    assert all(e <= {"planner_search"} for e in extra.values()), extra
+    assert {r["policy"] for r in rows} - {"planner_search"} == names
+    assert len(rows) == 2 * 12 + sum(len(e) for e in extra.values())
     # one step of improvement: the heuristic's from the planner row on every site, the best
     # learned row's on the first sweep.improve_sims sites; no other row has one
     for v in ("0.4", "0.8"):
@@ -151,7 +181,10 @@ def test_miniature_sweep_end_to_end(tmp_path, saved_policies, command):
             100 * (float(plan["trips_mean"]) - float(heur["trips_mean"]))
             / next(float(r["trips_mean"]) for r in rows
                    if r["value"] == v and r["policy"] == "rule"), abs=1e-6)
-        learned = set(imp) - {"heuristic"}
+        if "planner_search" in extra[v]:  # the search's improvement: that row, every site
+            base = [n for n in imp if n.startswith("search_")]
+            assert len(base) == 1 and imp[base[0]]["improvement_sims"] == "16"
+        learned = {n for n in imp if n != "heuristic" and not n.startswith("search_")}
         assert len(learned) == 1 and imp[learned.pop()]["improvement_sims"] == "4"
     assert all(float(r["gain_pct"]) == 0.0 for r in rows if r["policy"] == "rule")
     for r in rows:  # the share is the gain over best_known's gain, where that is positive
