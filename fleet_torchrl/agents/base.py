@@ -17,6 +17,7 @@ replay buffer, exploration schedule) and is driven by the one training loop of
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from typing import Any, ClassVar
 
 import torch
@@ -134,6 +135,28 @@ class Learner(nn.Module, ABC):
         """Objects with ``state_dict``/``load_state_dict`` that a checkpoint needs besides the
         learner itself (e.g. a replay buffer)."""
         return {}
+
+    def extra_state(self) -> dict[str, tuple[Callable[[], Any], Callable[[Any], None]]]:
+        """What the learner's own ``state_dict`` carries beside its tensors (optimiser,
+        learning-rate schedule, counters, random generators): ``{key: (get, set)}``, saved
+        under ``_<key>`` and restored after the tensors, so that a resumed run continues
+        exactly; a key absent from a loaded dict is left as it is."""
+        return {}
+
+    def state_dict(self, *args, **kwargs):
+        sd = super().state_dict(*args, **kwargs)
+        for key, (get, _) in self.extra_state().items():
+            sd[f"_{key}"] = get()
+        return sd
+
+    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
+        state_dict = dict(state_dict)
+        extra = self.extra_state()
+        values = {k: state_dict.pop(f"_{k}") for k in extra if f"_{k}" in state_dict}
+        out = super().load_state_dict(state_dict, strict=strict, assign=assign)
+        for key, value in values.items():
+            extra[key][1](value)
+        return out
 
 
 class GuardedPolicy(Policy):

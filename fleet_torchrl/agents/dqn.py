@@ -289,24 +289,14 @@ class DQNLearner(Learner):
             q_mean = float(self.qnet(sample["observation"]).max(-1).values.mean())
         return total / steps, float(norms) / steps, q_mean
 
-    def state_dict(self, *args, **kwargs):  # networks + target + eps + optimizer + schedule
-        sd = super().state_dict(*args, **kwargs)
-        sd["_optimizer"] = self.optimizer.state_dict()
-        sd["_target_counter"] = getattr(self.target_updater, "counter", 0)
+    def extra_state(self):  # optimiser, target-copy counter, schedule
+        out = {"optimizer": (self.optimizer.state_dict, self.optimizer.load_state_dict),
+               "target_counter": (lambda: getattr(self.target_updater, "counter", 0),
+                                  self._set_target_counter)}
         if self.scheduler is not None:
-            sd["_scheduler"] = self.scheduler.state_dict()
-        return sd
-
-    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
-        state_dict = dict(state_dict)
-        opt = state_dict.pop("_optimizer", None)
-        counter = state_dict.pop("_target_counter", None)
-        sched = state_dict.pop("_scheduler", None)
-        out = super().load_state_dict(state_dict, strict=strict, assign=assign)
-        if opt is not None:
-            self.optimizer.load_state_dict(opt)
-        if sched is not None and self.scheduler is not None:
-            self.scheduler.load_state_dict(sched)
-        if counter is not None and hasattr(self.target_updater, "counter"):
-            self.target_updater.counter = counter
+            out["scheduler"] = (self.scheduler.state_dict, self.scheduler.load_state_dict)
         return out
+
+    def _set_target_counter(self, counter: int) -> None:
+        if hasattr(self.target_updater, "counter"):
+            self.target_updater.counter = counter

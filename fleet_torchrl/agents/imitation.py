@@ -215,26 +215,11 @@ class ImitationLearner(Learner):
         return float(total) / steps
 
     # ------------------------------------------------------------------ checkpoint
-    def state_dict(self, *args, **kwargs):  # student + optimiser + mixing generator
-        sd = super().state_dict(*args, **kwargs)
-        sd["_optimizer"] = self.optimizer.state_dict()
-        sd["_scheduler"] = self.scheduler.state_dict()
-        sd["_mix_gen"] = self.mix_gen.get_state()
-        return sd
-
-    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
-        state_dict = dict(state_dict)
-        opt = state_dict.pop("_optimizer", None)
-        sched = state_dict.pop("_scheduler", None)
-        gen = state_dict.pop("_mix_gen", None)
-        out = super().load_state_dict(state_dict, strict=strict, assign=assign)
-        if opt is not None:
-            self.optimizer.load_state_dict(opt)
-        if sched is not None:
-            self.scheduler.load_state_dict(sched)
-        if gen is not None:
-            self.mix_gen.set_state(gen.cpu())
-        return out
+    def extra_state(self):  # optimiser, schedule, the generator of the expert mixing
+        return {"optimizer": (self.optimizer.state_dict, self.optimizer.load_state_dict),
+                "scheduler": (self.scheduler.state_dict, self.scheduler.load_state_dict),
+                "mix_gen": (self.mix_gen.get_state,
+                            lambda state: self.mix_gen.set_state(state.cpu()))}
 
 
 __all__ = ["ImitationAgentConfig", "ImitationLearner", "ImitationPolicy"]
