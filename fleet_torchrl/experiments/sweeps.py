@@ -42,7 +42,10 @@ The point's file ``results/sweeps/<name>/<param>=<value>.json`` is written atomi
 records a key of everything it depends on (the site, the evaluation and pick settings, each
 policy's identity: a baseline's parameters, a saved policy's file hash, the searches' and
 the planner's settings). A rerun skips a point whose key matches and recomputes one whose
-settings or policies changed; a point that fails writes an ``.error`` file beside it and
+settings or policies changed; a point on a site that another sweep has computed with the
+same settings (the default site is ``p_c`` 0.8, ``T_C`` 30 and ``N_V`` 3) takes that point's
+rows (``reused_from``). Each point records the wall time of its phases (``wall_s``). A
+point that fails writes an ``.error`` file beside it and
 does not stop the other points. The saved policies must exist (``make policies`` trains
 what is missing); a job trains only its point's searches.
 """
@@ -51,6 +54,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import time
 from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
@@ -227,6 +231,42 @@ def point_key(cfg: Config, site: SiteConfig, search_cfgs: dict[str, Config],
     return digest(parts)
 
 
+def twin_key(cfg: Config, site: SiteConfig) -> str:
+    """The point's key with the site's name left out: two sweeps that reach the same site
+    (the default site is ``p_c`` 0.8, ``T_C`` 30 and ``N_V`` 3) compute the same rows."""
+    neutral = replace(site, name="sweep point")
+    searches = ({k: search_config(cfg, neutral, o) for k, o in cfg.sweep.searches.items()}
+                if cfg.sweep.search else {})
+    specialists = {row: {seed: specialist_config(cfg, neutral, recipe, seed)
+                         for seed in specialist_seeds(cfg, site.name)}
+                   for row, recipe in cfg.sweep.specialists.items() if cfg.sweep.specialist}
+    return point_key(cfg, neutral, searches, specialists)
+
+
+def reuse_twin(cfg: Config, path: Path, twin: str, key: str, site: SiteConfig
+               ) -> list[dict[str, Any]] | None:
+    """The rows of another sweep's point on the same site with the same settings (its
+    ``twin_key``), written as this point's (``reused_from`` names the file); None if there
+    is none."""
+    param, value = cfg.sweep.param, point_value(cfg.sweep.param, cfg.sweep.value)
+    for other in sorted(Path(cfg.sweep.out).glob("*/*=*.json")):
+        if other.resolve() == path.resolve():
+            continue
+        try:
+            data = read_json(other)
+        except ValueError:
+            continue
+        if data.get("twin_key") != twin or "reused_from" in data:
+            continue
+        rows = [{**r, "param": param, "value": value} for r in data["rows"]]
+        write_json(path, {**data, "rows": rows, "site": site, "key": key,
+                          "reused_from": str(other)})
+        print(f"[sweep] {site.name}: the same site and settings as {other}: its rows reused",
+              flush=True)
+        return rows
+    return None
+
+
 def point_value(param: str, value: float) -> float | int:
     """The point's value as the site field takes it (validated: an integer parameter's value
     is integral, never rounded here)."""
@@ -326,6 +366,12 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
             print(f"[sweep] {path} exists, skipping")
             return None
         print(f"[sweep] {path} was computed with other settings or policies: recomputing")
+    twin = twin_key(cfg, site)
+    reused = reuse_twin(cfg, path, twin, key, site)
+    if reused is not None:
+        return reused
+    t_start = time.perf_counter()
+    phase_s: dict[str, float] = {}
     e = cfg.eval
     guard = GuardedPolicy if cfg.sweep.guard else (lambda p: p)
     # every row as {seed: policy}; a baseline, a search or a planner has one (seed None)
@@ -339,6 +385,7 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
                             for s, p in seed_paths(cfg, name).items()}
     summaries: dict[str, Any] = {}
     trained: dict[str, Path] = {}  # the point's own searches, possible starts of the next
+    t = time.perf_counter()
     for name, run_cfg in search_cfgs.items():
         if cfg.sweep.search_seeded and not any(o.split("=", 1)[0].lstrip("+~") == "agent.init"
                                                for o in cfg.sweep.searches[name]):
@@ -350,13 +397,19 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
         summaries[name]["init"] = run_cfg.agent.init
         groups[name] = {None: pol}
         trained[name] = Path(run_cfg.train.out_dir) / POLICY_FILE
+    phase_s["searches"] = time.perf_counter() - t
+    t = time.perf_counter()
     for row, runs in specialist_cfgs.items():
         groups[row] = {}
         for seed, run_cfg in runs.items():
             pol, summ = point_training(cfg, run_cfg, f"{label}/{row}/seed{seed}")
             groups[row][seed] = guard(_named(pol, row))
             summaries[f"{row}_seed{seed}"] = summ
+    phase_s["specialists"] = time.perf_counter() - t
+    t = time.perf_counter()
     keys = {(n, s): on_pick_set(cfg, site, p) for n, g in groups.items() for s, p in g.items()}
+    phase_s["pick_set"] = time.perf_counter() - t
+    t = time.perf_counter()
     if cfg.sweep.planner:
         groups[PLANNER] = {None: make_planner(cfg, HeuristicPolicy())}
         keys[(PLANNER, None)] = on_pick_set(cfg, site, groups[PLANNER][None])
@@ -366,14 +419,20 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
             keys[(PLANNER_SEARCH, None)] = on_pick_set(cfg, site,
                                                        groups[PLANNER_SEARCH][None])
             print(f"[sweep] {label} {PLANNER_SEARCH}: the planner over {base}", flush=True)
+    phase_s["planners_pick_set"] = time.perf_counter() - t
     best = best_of(keys)
     print(f"[sweep] {label}: best known is {best[0]}"
           + (f" seed {best[1]}" if best[1] is not None else "")
           + f" ({-keys[best][1]:.1f} trips on the pick set)", flush=True)
+    t = time.perf_counter()
     results = {(n, s): evaluate_with(p, site, e, name=n if s is None else f"{n}_seed{s}")
                for n, g in groups.items() for s, p in g.items()}
+    phase_s["evaluation"] = time.perf_counter() - t
+    t = time.perf_counter()
     rule = results[("rule", None)] if ("rule", None) in results else None
     improved = one_step(cfg, site, groups, keys, results, rule)
+    phase_s["improvement"] = time.perf_counter() - t
+    phase_s["total"] = time.perf_counter() - t_start
     rows = []
     for name, g in groups.items():
         if list(g) == [None]:
@@ -403,7 +462,8 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
         r.update(param=param, value=value)
         ok = top is not None and r["gain_pct"] is not None and top > 0
         r["share_of_best_known_pct"] = 100.0 * r["gain_pct"] / top if ok else None
-    write_json(path, {"rows": rows, "site": site, "key": key,
+    write_json(path, {"rows": rows, "site": site, "key": key, "twin_key": twin,
+                      "wall_s": {k: round(v, 1) for k, v in phase_s.items()},
                       "best_known": {"from": best[0], "seed": best[1], "pick_set": {
                           (n if s is None else f"{n}_seed{s}"):
                           {"failure_rate": k[0], "trips_mean": -k[1]}
@@ -416,6 +476,8 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
     err = path.with_suffix(".error")
     if err.exists():
         err.unlink()
+    print(f"[sweep] {label}: " + ", ".join(f"{k} {v:.0f} s" for k, v in phase_s.items()),
+          flush=True)
     for r in rows:
         gain = f", gain {r['gain_pct']:+.2f} %" if r["gain_pct"] is not None else ""
         share = (f", {r['share_of_best_known_pct']:.0f} % of the best known"

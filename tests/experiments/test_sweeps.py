@@ -156,6 +156,19 @@ def test_miniature_sweep_end_to_end(tmp_path, saved_policies, command):
     assert "[sweeps] 2 of 2 jobs done: sweep.value=" in r.stdout  # overall progress
     assert command(sweeps_summary.main, "name=pc", f"out={out}",
                    "expect=['p_c=0.4','p_c=0.8']") == 0
+    # another sweep's point on the same site with the same settings (T_C = 30 is the site of
+    # p_c = 0.8, with its two specialist seeds) reuses its rows instead of computing them
+    tc = cmd[:4] + ["+experiment=sweep_tc", "sweep.value=30"] + cmd[6:-1] + [
+        "sweep.more_seeds_at=['p_c=0.8','t_c=30']", f"hydra.sweep.dir={tmp_path / 'mr_tc'}"]
+    rt = subprocess.run(tc, capture_output=True, text=True, timeout=300)
+    assert rt.returncode == 0 and "its rows reused" in rt.stdout, rt.stdout[-2000:]
+    twin = json.loads((out / "tc" / "t_c=30.json").read_text())
+    orig = json.loads((out / "pc" / "p_c=0.8.json").read_text())
+    assert twin["reused_from"].endswith("p_c=0.8.json") and twin["key"] != orig["key"]
+    assert [(r["policy"], r["trips_mean"]) for r in twin["rows"]] == \
+        [(r["policy"], r["trips_mean"]) for r in orig["rows"]]
+    assert {(r["param"], r["value"]) for r in twin["rows"]} == {("t_c", 30)}
+    assert set(orig["wall_s"]) >= {"searches", "specialists", "evaluation", "total"}
     rows = list(csv.DictReader((out / "pc.csv").open()))
     assert set(rows[0]) == {"param", "value", "policy", "seeds", "trips_mean", "trips_std",
                             "queue_mean", "failure_rate", "failure_rate_max", "gain_pct",
