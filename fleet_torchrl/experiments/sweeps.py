@@ -231,16 +231,23 @@ def point_key(cfg: Config, site: SiteConfig, search_cfgs: dict[str, Config],
     return digest(parts)
 
 
+def point_trainings(cfg: Config, site: SiteConfig, label: str
+                    ) -> tuple[dict[str, Config], dict[str, dict[int, Config]]]:
+    """The training configs of a point on ``site``: its searches (``{row: config}``) and its
+    specialists (``{row: {seed: config}}``, the seeds of the point ``label``)."""
+    searches = ({k: search_config(cfg, site, o) for k, o in cfg.sweep.searches.items()}
+                if cfg.sweep.search else {})
+    specialists = {row: {seed: specialist_config(cfg, site, recipe, seed)
+                         for seed in specialist_seeds(cfg, label)}
+                   for row, recipe in cfg.sweep.specialists.items() if cfg.sweep.specialist}
+    return searches, specialists
+
+
 def twin_key(cfg: Config, site: SiteConfig) -> str:
     """The point's key with the site's name left out: two sweeps that reach the same site
     (the default site is ``p_c`` 0.8, ``T_C`` 30 and ``N_V`` 3) compute the same rows."""
     neutral = replace(site, name="sweep point")
-    searches = ({k: search_config(cfg, neutral, o) for k, o in cfg.sweep.searches.items()}
-                if cfg.sweep.search else {})
-    specialists = {row: {seed: specialist_config(cfg, neutral, recipe, seed)
-                         for seed in specialist_seeds(cfg, site.name)}
-                   for row, recipe in cfg.sweep.specialists.items() if cfg.sweep.specialist}
-    return point_key(cfg, neutral, searches, specialists)
+    return point_key(cfg, neutral, *point_trainings(cfg, neutral, site.name))
 
 
 def reuse_twin(cfg: Config, path: Path, twin: str, key: str, site: SiteConfig
@@ -350,12 +357,7 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
         raise ConfigError(f"site={cfg.site.name!r} is a site distribution: a sweep varies "
                           f"{param} of one site; run it on a single site (e.g. site=default)")
     site = replace(cfg.site, **{param: value}, name=label).validate()
-    search_cfgs = ({k: search_config(cfg, site, o) for k, o in cfg.sweep.searches.items()}
-                   if cfg.sweep.search else {})
-    specialist_cfgs = {row: {seed: specialist_config(cfg, site, recipe, seed)
-                             for seed in specialist_seeds(cfg, label)}
-                       for row, recipe in cfg.sweep.specialists.items()
-                       if cfg.sweep.specialist}
+    search_cfgs, specialist_cfgs = point_trainings(cfg, site, label)
     key = point_key(cfg, site, search_cfgs, specialist_cfgs)
     if path.exists():
         try:
@@ -410,11 +412,14 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
     keys = {(n, s): on_pick_set(cfg, site, p) for n, g in groups.items() for s, p in g.items()}
     phase_s["pick_set"] = time.perf_counter() - t
     t = time.perf_counter()
+    planner_bases: dict[str, str] = {}  # base row -> the planner row over it
     if cfg.sweep.planner:
         groups[PLANNER] = {None: make_planner(cfg, HeuristicPolicy())}
         keys[(PLANNER, None)] = on_pick_set(cfg, site, groups[PLANNER][None])
+        planner_bases["heuristic"] = PLANNER
         base = search_base(cfg, groups, keys)
         if base is not None:
+            planner_bases[base] = PLANNER_SEARCH
             groups[PLANNER_SEARCH] = {None: make_planner(cfg, groups[base][None])}
             keys[(PLANNER_SEARCH, None)] = on_pick_set(cfg, site,
                                                        groups[PLANNER_SEARCH][None])
@@ -430,7 +435,7 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
     phase_s["evaluation"] = time.perf_counter() - t
     t = time.perf_counter()
     rule = results[("rule", None)] if ("rule", None) in results else None
-    improved = one_step(cfg, site, groups, keys, results, rule)
+    improved = one_step(cfg, site, groups, keys, results, rule, planner_bases)
     phase_s["improvement"] = time.perf_counter() - t
     phase_s["total"] = time.perf_counter() - t_start
     rows = []
@@ -508,20 +513,19 @@ def search_base(cfg: Config, groups: dict[str, dict[int | None, Policy]],
 def one_step(cfg: Config, site: SiteConfig, groups: dict[str, dict[int | None, Policy]],
              keys: dict[tuple[str, int | None], tuple[float, float]],
              results: dict[tuple[str, int | None], dict[str, Any]],
-             rule: dict[str, Any] | None) -> dict[str, dict[str, Any]]:
+             rule: dict[str, Any] | None, planner_bases: dict[str, str]
+             ) -> dict[str, dict[str, Any]]:
     """What one step of policy improvement adds to the policies of ``sweep.improve`` (the
     best learned row's best seed on the pick set, ...): the planner over it on the first
     ``sweep.improve_sims`` sites of the evaluation, paired with its own records, in points
-    of gain over the rule (:func:`~fleet_torchrl.experiments.improvement.improvement`). The
-    heuristic's is the planner row itself, paired on every site. ``{row: improvement_*}``."""
+    of gain over the rule (:func:`~fleet_torchrl.experiments.improvement.improvement`). A
+    base with a planner row of its own (``planner_bases``: base row -> planner row; the
+    heuristic's ``planner``, the search's ``planner_search``) takes that row, paired on
+    every site. ``{row: improvement_*}``."""
     out: dict[str, dict[str, Any]] = {}
     if not cfg.sweep.planner or rule is None:
         return out
-    bases = {"heuristic": PLANNER}
-    base = search_base(cfg, groups, keys)
-    if base is not None and (PLANNER_SEARCH, None) in results:
-        bases[base] = PLANNER_SEARCH
-    for name, planner in bases.items():
+    for name, planner in planner_bases.items():
         if (name, None) not in results:
             continue
         trips = {n: results[(n, None)]["records"]["trips"] for n in (planner, name)}
