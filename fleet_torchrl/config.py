@@ -175,6 +175,11 @@ def validate(cfg: Config) -> Config:
     cfg.sweep.validate(known)
     for row, recipe in cfg.sweep.specialists.items():
         check_choice(f"sweep.specialists.{row}", recipe, tuple(cfg.recipes))
+    if cfg.sweep.distil is not None:
+        check_choice("sweep.distil", cfg.sweep.distil, tuple(cfg.recipes))
+        if "agent=imitation" not in cfg.recipes[cfg.sweep.distil].overrides:
+            raise ConfigError(f"sweep.distil={cfg.sweep.distil!r} is invalid: allowed a "
+                              "recipe of agent=imitation (the planner distilled), or null")
     cfg.maps.validate(known)
     cfg.objective.validate()
     cfg.bench.validate()

@@ -163,6 +163,16 @@ class SweepConfig:
     pick_sims: int = 200
     pick_ticks: int = 10_000
     search_dir: str = "results/search"
+    # the point's best planner distilled on the point's own site (row specialist_distilled,
+    # a recipe of agent=imitation): its teacher is the planner over the base of the
+    # planner_search row (the point's best search) where there is one, else over the
+    # heuristic; the specialists' seeds; null (or specialist=false) skips it (about 2 min
+    # per seed and point)
+    distil: str | None = "imitation"
+    # every evaluation of a point (pick set, test sites, one-step improvements) is cached
+    # under <search_dir>/evaluations by the policy's content, the site, the protocol and the
+    # code's source (evaluation/cache.py): a rerun that adds a row computes that row
+    eval_cache: bool = True
 
     def __post_init__(self) -> None:
         validate_on_init(self)
@@ -198,9 +208,10 @@ class SweepConfig:
         for i, name in enumerate(self.improve):
             check_choice(f"{path}.improve[{i}]", name, (*self.policies, "best_learned", "best"))
         for row, recipe in self.specialists.items():
-            if not row.startswith("specialist"):
+            if not row.startswith("specialist") or row == "specialist_distilled":
                 raise ConfigError(f"{path}.specialists.{row}={recipe!r} is invalid: allowed "
-                                  "row names start with 'specialist' (specialist_dqn)")
+                                  "row names start with 'specialist' (specialist_dqn), "
+                                  "other than specialist_distilled (sweep.distil's row)")
         check_range(f"{path}.specialist_seeds", self.specialist_seeds, 1, 100)
         check_range(f"{path}.more_seeds", self.more_seeds, 1, 100)
         return self

@@ -56,6 +56,7 @@ import hashlib
 import json
 import time
 from dataclasses import asdict, replace
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -67,6 +68,7 @@ from ..agents.policy_files import POLICY_FILE
 from ..agents.search import SearchPolicy, cell_centres, clone_policy, threshold_start
 from ..config import Config, compose_config
 from ..evaluation import evaluate_policy, evaluate_with, gain_over, seed_interval
+from ..evaluation.cache import EvalCache, policy_fingerprint, site_identity
 from ..sim import SiteConfig
 from ..store import load_policies, saved_policy_path
 from ..training import Trainer, training_fingerprint
@@ -83,6 +85,7 @@ IMPROVEMENT_FIELDS = POINT_FIELDS[-4:]
 BEST_KNOWN = "best_known"  # the row of the best policy known at the point
 PLANNER = "planner"  # the rollout planner over the heuristic
 PLANNER_SEARCH = "planner_search"  # the rollout planner over the point's best search
+DISTILLED = "specialist_distilled"  # the point's best planner distilled on its site
 
 
 def digest(obj: Any) -> str:
@@ -121,13 +124,23 @@ def make_planner(cfg: Config, base: Policy) -> PlannerPolicy:
     return PlannerPolicy.from_config(planner_config(cfg), base)
 
 
-def on_pick_set(cfg: Config, site: SiteConfig, pol: Policy) -> tuple[float, float]:
+def eval_cache(cfg: Config) -> EvalCache:
+    """The sweeps' evaluation cache (``<sweep.search_dir>/evaluations``, unless
+    ``sweep.eval_cache=false``)."""
+    return EvalCache(Path(cfg.sweep.search_dir) / "evaluations" if cfg.sweep.eval_cache
+                     else None)
+
+
+def on_pick_set(cfg: Config, site: SiteConfig, pol: Policy, cache: EvalCache | None = None
+                ) -> tuple[float, float]:
     """``(failure rate, -mean trips)`` of a policy on the point's pick set: the searches'
     selection seed (``train.eval_seed``, apart from the evaluation's sites) with
     ``sweep.pick_sims`` x ``sweep.pick_ticks``; lower is better."""
     seed = compose_config(["agent=search"]).train.eval_seed
-    res = evaluate_policy(pol, site, cfg.sweep.pick_sims, cfg.sweep.pick_ticks, seed,
-                          cfg.eval.device)
+    n, ticks = cfg.sweep.pick_sims, cfg.sweep.pick_ticks
+    res = (cache or EvalCache(None)).evaluate(
+        pol, site, n, ticks, seed,
+        lambda: evaluate_policy(pol, site, n, ticks, seed, cfg.eval.device))
     return res["failure_rate"], -res["trips_mean"]
 
 
@@ -181,7 +194,11 @@ def point_training(cfg: Config, run_cfg: Config, label: str) -> tuple[Policy, di
     reused when its settings (and start) match, and its summary."""
     init = Path(getattr(run_cfg.agent, "init", "") or "")
     init = init / POLICY_FILE if init.is_dir() else init
-    start = file_sha256(init) if init.is_file() else None
+    start: Any = file_sha256(init) if init.is_file() else None
+    teacher = Path(getattr(getattr(run_cfg.agent, "expert", None), "base", "") or "")
+    teacher = teacher / POLICY_FILE if teacher.is_dir() else teacher
+    if teacher.is_file():  # a teacher over a saved policy: its content, not just its path
+        start = [start, file_sha256(teacher)]
     out = Path(cfg.sweep.search_dir) / label / digest([training_fingerprint(run_cfg), start])
     run_cfg.train.out_dir = str(out)
     if not reusable(out, run_cfg):
@@ -234,12 +251,18 @@ def point_key(cfg: Config, site: SiteConfig, search_cfgs: dict[str, Config],
 def point_trainings(cfg: Config, site: SiteConfig, label: str
                     ) -> tuple[dict[str, Config], dict[str, dict[int, Config]]]:
     """The training configs of a point on ``site``: its searches (``{row: config}``) and its
-    specialists (``{row: {seed: config}}``, the seeds of the point ``label``)."""
+    specialists (``{row: {seed: config}}``, the seeds of the point ``label``), the distilled
+    planner's (``sweep.distil``, row ``specialist_distilled``) among them with its recipe's
+    teacher: the point sets the teacher's base once its searches are known
+    (:func:`distil_teacher`)."""
     searches = ({k: search_config(cfg, site, o) for k, o in cfg.sweep.searches.items()}
                 if cfg.sweep.search else {})
+    recipes = dict(cfg.sweep.specialists) if cfg.sweep.specialist else {}
+    if cfg.sweep.specialist and cfg.sweep.distil is not None:
+        recipes[DISTILLED] = cfg.sweep.distil
     specialists = {row: {seed: specialist_config(cfg, site, recipe, seed)
                          for seed in specialist_seeds(cfg, label)}
-                   for row, recipe in cfg.sweep.specialists.items() if cfg.sweep.specialist}
+                   for row, recipe in recipes.items()}
     return searches, specialists
 
 
@@ -375,6 +398,7 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
     t_start = time.perf_counter()
     phase_s: dict[str, float] = {}
     e = cfg.eval
+    cache = eval_cache(cfg)
     guard = GuardedPolicy if cfg.sweep.guard else (lambda p: p)
     # every row as {seed: policy}; a baseline, a search or a planner has one (seed None)
     groups: dict[str, dict[int | None, Policy]] = {}
@@ -402,6 +426,8 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
     phase_s["searches"] = time.perf_counter() - t
     t = time.perf_counter()
     for row, runs in specialist_cfgs.items():
+        if row == DISTILLED:  # trained once its teacher is known (below)
+            continue
         groups[row] = {}
         for seed, run_cfg in runs.items():
             pol, summ = point_training(cfg, run_cfg, f"{label}/{row}/seed{seed}")
@@ -409,33 +435,50 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
             summaries[f"{row}_seed{seed}"] = summ
     phase_s["specialists"] = time.perf_counter() - t
     t = time.perf_counter()
-    keys = {(n, s): on_pick_set(cfg, site, p) for n, g in groups.items() for s, p in g.items()}
+    keys = {(n, s): on_pick_set(cfg, site, p, cache) for n, g in groups.items()
+            for s, p in g.items()}
     phase_s["pick_set"] = time.perf_counter() - t
     t = time.perf_counter()
     planner_bases: dict[str, str] = {}  # base row -> the planner row over it
     if cfg.sweep.planner:
         groups[PLANNER] = {None: make_planner(cfg, HeuristicPolicy())}
-        keys[(PLANNER, None)] = on_pick_set(cfg, site, groups[PLANNER][None])
+        keys[(PLANNER, None)] = on_pick_set(cfg, site, groups[PLANNER][None], cache)
         planner_bases["heuristic"] = PLANNER
         base = search_base(cfg, groups, keys)
         if base is not None:
             planner_bases[base] = PLANNER_SEARCH
             groups[PLANNER_SEARCH] = {None: make_planner(cfg, groups[base][None])}
             keys[(PLANNER_SEARCH, None)] = on_pick_set(cfg, site,
-                                                       groups[PLANNER_SEARCH][None])
+                                                       groups[PLANNER_SEARCH][None], cache)
             print(f"[sweep] {label} {PLANNER_SEARCH}: the planner over {base}", flush=True)
     phase_s["planners_pick_set"] = time.perf_counter() - t
+    t = time.perf_counter()
+    if DISTILLED in specialist_cfgs:
+        teacher = distil_teacher(cfg, next(reversed(planner_bases), None), trained)
+        groups[DISTILLED] = {}
+        for seed, run_cfg in specialist_cfgs[DISTILLED].items():
+            run_cfg.agent.expert = teacher
+            pol, summ = point_training(cfg, run_cfg, f"{label}/{DISTILLED}/seed{seed}")
+            groups[DISTILLED][seed] = guard(_named(pol, DISTILLED))
+            summaries[f"{DISTILLED}_seed{seed}"] = {**summ, "teacher_base": teacher.base}
+            keys[(DISTILLED, seed)] = on_pick_set(cfg, site, groups[DISTILLED][seed], cache)
+        print(f"[sweep] {label} {DISTILLED}: the planner over {teacher.base} distilled",
+              flush=True)
+    phase_s["distil"] = time.perf_counter() - t
     best = best_of(keys)
     print(f"[sweep] {label}: best known is {best[0]}"
           + (f" seed {best[1]}" if best[1] is not None else "")
           + f" ({-keys[best][1]:.1f} trips on the pick set)", flush=True)
     t = time.perf_counter()
-    results = {(n, s): evaluate_with(p, site, e, name=n if s is None else f"{n}_seed{s}")
+    results = {(n, s): evaluated(cache, p, site, e, n if s is None else f"{n}_seed{s}")
                for n, g in groups.items() for s, p in g.items()}
     phase_s["evaluation"] = time.perf_counter() - t
     t = time.perf_counter()
     rule = results[("rule", None)] if ("rule", None) in results else None
-    improved = one_step(cfg, site, groups, keys, results, rule, planner_bases)
+    improved = one_step(cfg, site, groups, keys, results, rule, planner_bases, cache)
+    if cache.folder is not None:
+        print(f"[sweep] {label}: evaluation cache {cache.hits} hit(s), {cache.misses} "
+              f"computed ({cache.folder})", flush=True)
     phase_s["improvement"] = time.perf_counter() - t
     phase_s["total"] = time.perf_counter() - t_start
     rows = []
@@ -475,7 +518,8 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
                           for (n, s), k in keys.items()}},
                       "guard": cfg.sweep.guard,
                       "trainings": {n: {**{k: v[k] for k in ("run_dir", "wall_s", "best")},
-                                        **({"init": v["init"]} if "init" in v else {})}
+                                        **{k: v[k] for k in ("init", "teacher_base")
+                                           if k in v}}
                                     for n, v in summaries.items()},
                       "meta": run_info(cfg, seed=e.seed)})
     err = path.with_suffix(".error")
@@ -513,8 +557,8 @@ def search_base(cfg: Config, groups: dict[str, dict[int | None, Policy]],
 def one_step(cfg: Config, site: SiteConfig, groups: dict[str, dict[int | None, Policy]],
              keys: dict[tuple[str, int | None], tuple[float, float]],
              results: dict[tuple[str, int | None], dict[str, Any]],
-             rule: dict[str, Any] | None, planner_bases: dict[str, str]
-             ) -> dict[str, dict[str, Any]]:
+             rule: dict[str, Any] | None, planner_bases: dict[str, str],
+             cache: EvalCache | None = None) -> dict[str, dict[str, Any]]:
     """What one step of policy improvement adds to the policies of ``sweep.improve`` (the
     best learned row's best seed on the pick set, ...): the planner over it on the first
     ``sweep.improve_sims`` sites of the evaluation, paired with its own records, in points
@@ -546,9 +590,12 @@ def one_step(cfg: Config, site: SiteConfig, groups: dict[str, dict[int | None, P
         name, seed = best_of(pool)
         if name in out:
             continue
-        imp = improvement(groups[name][seed], results[(name, seed)], rule, site,
-                          cfg.sweep.improve_sims, cfg.eval.ticks, cfg.eval.seed,
-                          planner_config(cfg), cfg.eval.device)
+        pol, planner = groups[name][seed], planner_config(cfg)
+        parts = ["improvement", policy_fingerprint(pol), asdict(planner), site_identity(site),
+                 cfg.sweep.improve_sims, cfg.eval.ticks, cfg.eval.seed]
+        imp = (cache or EvalCache(None)).get_or_compute(parts, partial(
+            improvement, pol, results[(name, seed)], rule, site, cfg.sweep.improve_sims,
+            cfg.eval.ticks, cfg.eval.seed, planner, cfg.eval.device))
         out[name] = {"improvement_pct": imp["improvement_pct"],
                      "improvement_ci95": imp["improvement_ci95"],
                      "improvement_sims": imp["sims"],
@@ -557,6 +604,25 @@ def one_step(cfg: Config, site: SiteConfig, groups: dict[str, dict[int | None, P
               + f": one step of improvement {imp['improvement_pct']:+.2f} "
               f"± {imp['improvement_ci95']:.2f} ({imp['sims']} sites)", flush=True)
     return out
+
+
+def distil_teacher(cfg: Config, base: str | None, trained: dict[str, Path]) -> Any:
+    """The teacher of row ``specialist_distilled``: the sweep's planner settings over the
+    base of the point's last planner row (``planner_search``'s search, by its policy file;
+    the heuristic when the point has no planner over a search)."""
+    teacher = planner_config(cfg)
+    if base is not None and base in trained:
+        teacher.base = str(trained[base])
+    elif base is not None and base != "heuristic":
+        raise ConfigError(f"the distilled planner's base {base!r} has no policy file")
+    return teacher
+
+
+def evaluated(cache: EvalCache, pol: Policy, site: SiteConfig, e: Any, name: str
+              ) -> dict[str, Any]:
+    """:func:`evaluate_with` through the point's evaluation cache."""
+    return cache.evaluate(pol, site, e.n_sims, e.ticks, e.seed,
+                          lambda: evaluate_with(pol, site, e, name=name), name=name)
 
 
 def _named(pol: Policy, name: str) -> Policy:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -177,12 +178,12 @@ def test_miniature_sweep_end_to_end(tmp_path, saved_policies, command):
                             "improvement_seed"}
     names = {"rule", "heuristic", "tabular", "dqn_partial", "search", "search_threshold",
              "search_table", "specialist_dqn", "specialist_tabular", "specialist_imitation",
-             "planner", "best_known"}
+             "specialist_distilled", "planner", "best_known"}
     # planner_search: at a point whose best search beats the heuristic on the pick set
     extra = {v: {r["policy"] for r in rows if r["value"] == v} - names for v in ("0.4", "0.8")}
     assert all(e <= {"planner_search"} for e in extra.values()), extra
     assert {r["policy"] for r in rows} - {"planner_search"} == names
-    assert len(rows) == 2 * 12 + sum(len(e) for e in extra.values())
+    assert len(rows) == 2 * 13 + sum(len(e) for e in extra.values())
     # one step of improvement: the heuristic's from the planner row on every site, the best
     # learned row's on the first sweep.improve_sims sites; no other row has one
     for v in ("0.4", "0.8"):
@@ -221,14 +222,24 @@ def test_miniature_sweep_end_to_end(tmp_path, saved_policies, command):
                      "p_c=0.8/search_table", "p_c=0.8/search_threshold"], found
     found = sorted(str(p.relative_to(tmp_path / "search").parent.parent)
                    for p in (tmp_path / "search").glob("*/specialist_*/*/*/policy.pt"))
-    assert found == ["p_c=0.4/specialist_dqn/seed0", "p_c=0.4/specialist_imitation/seed0",
-                     "p_c=0.4/specialist_tabular/seed0",
+    assert found == ["p_c=0.4/specialist_distilled/seed0", "p_c=0.4/specialist_dqn/seed0",
+                     "p_c=0.4/specialist_imitation/seed0", "p_c=0.4/specialist_tabular/seed0",
+                     "p_c=0.8/specialist_distilled/seed0", "p_c=0.8/specialist_distilled/seed1",
                      "p_c=0.8/specialist_dqn/seed0", "p_c=0.8/specialist_dqn/seed1",
                      "p_c=0.8/specialist_imitation/seed0", "p_c=0.8/specialist_imitation/seed1",
                      "p_c=0.8/specialist_tabular/seed0", "p_c=0.8/specialist_tabular/seed1"]
     assert (out / "pc.png").stat().st_size > 1000 and (out / "pc.json").exists()
     point = json.loads((out / "pc" / "p_c=0.8.json").read_text())
     assert point["guard"] is True
+    # the distilled row's teacher: the planner over the planner_search row's search (its
+    # policy file), else over the heuristic
+    for v, p in (("0.4", out / "pc" / "p_c=0.4.json"), ("0.8", out / "pc" / "p_c=0.8.json")):
+        teacher = json.loads(p.read_text())["trainings"]["specialist_distilled_seed0"][
+            "teacher_base"]
+        if "planner_search" in extra[v]:
+            assert teacher.startswith(str(tmp_path / "search" / f"p_c={v}" / "search_"))
+        else:
+            assert teacher == "heuristic"
     assert point["trainings"]["search_table"]["init"] in (
         "rule", "heuristic", str(root / "tabular" / "policy.pt"),
         str(root / "dqn_partial" / "policy.pt"))
@@ -250,8 +261,23 @@ def test_miniature_sweep_end_to_end(tmp_path, saved_policies, command):
     r4 = subprocess.run(cmd[:5] + ["sweep.value=0.8", "eval.n_sims=12"] + cmd[7:],
                         capture_output=True, text=True, timeout=300)
     assert "recomputing" in r4.stdout and "reusing" in r4.stdout, r4.stdout
-    assert all(r["trips_mean"] > 0 for r in
-               json.loads((out / "pc" / "p_c=0.8.json").read_text())["rows"])
+    before = json.loads((out / "pc" / "p_c=0.8.json").read_text())["rows"]
+    assert all(r["trips_mean"] > 0 for r in before)
+    assert "evaluation cache 0 hit(s)" not in r4.stdout  # the pick set's were cached
+    # one more row: every other evaluation comes from the cache, with the same numbers
+    r5 = subprocess.run(cmd[:5] + ["sweep.value=0.8", "eval.n_sims=12", cmd[7],
+                                   "sweep.policies=[rule,heuristic,tabular,dqn_partial,search,"
+                                   "imitation]"] + cmd[9:],
+                        capture_output=True, text=True, timeout=300)
+    assert r5.returncode == 0, r5.stderr[-2000:]
+    m = re.search(r"evaluation cache (\d+) hit\(s\), (\d+) computed", r5.stdout)
+    assert m and int(m[1]) >= 30 and int(m[2]) <= 3, r5.stdout  # imitation: pick, test (+1)
+    after = {r["policy"]: r for r in
+             json.loads((out / "pc" / "p_c=0.8.json").read_text())["rows"]}
+    assert "imitation" in after
+    for r in before:
+        assert {k: after[r["policy"]][k] for k in ("trips_mean", "queue_mean", "gain_pct")} \
+            == {k: r[k] for k in ("trips_mean", "queue_mean", "gain_pct")}, r["policy"]
     bad = cmd[:5] + ["sweep.value=0.6"] + [c for c in cmd[6:] if "policies_dir" not in c] + [
         f"table.policies_dir={tmp_path / 'nowhere'}"]
     r3 = subprocess.run(bad, capture_output=True, text=True, timeout=300)
@@ -273,7 +299,7 @@ def test_miniature_sweep_through_submitit(tmp_path):
            "sweep.value=0.4,0.8", "eval.n_sims=8", "eval.ticks=300",
            "sweep.policies=[rule,heuristic]", "sweep.search=false", "sweep.planner=false",
            "sweep.specialist=false",
-           f"sweep.out={out}",
+           f"sweep.out={out}", f"sweep.search_dir={tmp_path / 'search'}",
            f"hydra.sweep.dir={tmp_path / 'multirun'}"]
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
@@ -296,7 +322,7 @@ def test_miniature_sweep_through_ray(tmp_path):
            "sweep.value=0.4,0.8", "eval.n_sims=8", "eval.ticks=300",
            "sweep.policies=[rule,heuristic]", "sweep.search=false", "sweep.planner=false",
            "sweep.specialist=false",
-           f"sweep.out={out}",
+           f"sweep.out={out}", f"sweep.search_dir={tmp_path / 'search'}",
            f"hydra.sweep.dir={tmp_path / 'multirun'}"]
     ray_tmp = tempfile.mkdtemp(prefix="ray", dir="/tmp")  # Ray's socket paths must be short
     env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0", "RAY_TMPDIR": ray_tmp}
