@@ -23,6 +23,7 @@ import torch
 from torch import Tensor
 
 from ..sim import C, D, Site, SiteState
+from ..sim.fused import partial_features
 
 
 class Encoding:
@@ -71,6 +72,9 @@ class Partial(Encoding):
         return 3
 
     def __call__(self, site: Site, s: SiteState) -> Tensor:
+        fast = partial_features(s)  # one compiled pass on the CPU (the same float32 values)
+        if fast is not None:
+            return fast
         soc = s.soc
         soc_d = (soc * (s.pos == D)).sum(0)
         others = torch.where(s.pos > C, soc, 100.0).amin(0)  # neither D (0) nor C (1)

@@ -238,6 +238,27 @@ def _state_arrays(s: SiteState) -> list[np.ndarray]:
     return arrays
 
 
+_FEATURES = {"ok": True}  # the features kernel runs here (False after it could not be built)
+
+
+def partial_features(state: SiteState) -> Tensor | None:
+    """The ``partial`` state of every site of a CPU state (``[B, 3]`` float32, bit-identical
+    to the tensor encoding of :mod:`fleet_torchrl.env.encodings`) from one kernel pass, or
+    ``None`` where the kernel does not apply (other devices; a machine where it cannot be
+    built, where the caller's tensor operations serve)."""
+    if state.pos.device.type != "cpu" or not _FEATURES["ok"]:
+        return None
+    pos, soc, left = _state_arrays(state)[:3]
+    t_c = _state_arrays(state)[6]
+    out = np.empty((pos.shape[1], 3), dtype=np.float32)
+    try:
+        _k.call("partial_features", pos, soc, left, t_c, out)
+    except Exception:  # noqa: BLE001 (SetupError, said once by kernel.call: fall back)
+        _FEATURES["ok"] = False
+        return None
+    return torch.from_numpy(out)
+
+
 def _check_lengths(b: int, **arrays) -> None:
     for name, a in arrays.items():
         if a.shape[0] not in (1, b):

@@ -302,6 +302,32 @@ def advance_cuda(pos, soc, left, charge, tick, site_hash, limit, active, n_veh, 
                   n_tc, o_int, o_flag, PL, E)
 
 
+@njit(cache=True, nogil=True)
+def partial_features(pos, soc, left, t_c, out):
+    """The ``partial`` state of every site (``out[b]``: soc at ``D``, lowest soc neither at
+    ``D`` nor at ``C``, the charger's ``TC``; float32, the features :func:`decide` reads) in
+    one pass over the vehicles: what the environment observes after each step, without a
+    dozen tensor operations. ``t_c``: one value or one per site."""
+    nv, nb = pos.shape
+    one = t_c.shape[0] == 1
+    for b in range(nb):
+        soc_d = F32_0
+        others = F32_100
+        tc_raw = 0
+        for v in range(nv):
+            p = pos[v, b]
+            if p == 0:
+                soc_d = soc[v, b]
+            elif p == 1:
+                tc_raw += left[v, b] + 1
+            elif soc[v, b] < others:
+                others = soc[v, b]
+        tcb = t_c[0] if one else t_c[b]
+        out[b, 0] = soc_d * F32_SOC_SCALE
+        out[b, 1] = others * F32_SOC_SCALE
+        out[b, 2] = np.float32(tc_raw) * np.float32(1.0 / (tcb + 1.0))
+
+
 # ------------------------------------------------------------------ the on-disk cache
 # What numba caches (``__pycache__`` beside this file, or ``NUMBA_CACHE_DIR``): every
 # function above that is compiled for the CPU. Numba checks a cached kernel's source stamp,
@@ -310,7 +336,7 @@ def advance_cuda(pos, soc, left, charge, tick, site_hash, limit, active, n_veh, 
 # each cached data file (``.nbc``, written once per compiled signature) beside them, checks
 # it before the first kernel call of a process and rebuilds the cache when a file differs.
 CACHED = ("mix32", "closed_now", "soc_bin", "decide", "run_site_range", "advance_parallel",
-          "advance_serial")
+          "advance_serial", "partial_features")
 MANIFEST = "fleet_torchrl_kernel.sha256.json"
 _called: set[str] = set()  # the kernels that have run in this process
 _verified: list[bool] = []  # the manifest was checked in this process

@@ -66,3 +66,41 @@ def test_env_specs_of_every_encoding_on_a_site_distribution():
     for name in ("partial", "all", "partial_site"):
         env = FleetChargingEnv(mixed, name, num_sites=8, seed=0)
         check_env_specs(env, seed=0)
+
+
+@pytest.mark.parametrize("site_cfg", [
+    SiteConfig(), SiteConfig(n_vehicles=1), SiteConfig(n_vehicles=5, t_c=50),
+    SiteConfig(t_c=10, p_c=0.0), "randomized"], ids=["default", "nv1", "nv5_tc50", "tc10",
+                                                     "randomized"])
+def test_the_compiled_partial_state_is_the_tensor_encoding_bit_for_bit(site_cfg, monkeypatch):
+    """On the CPU ``partial`` comes from one kernel pass (sim/fused.py: partial_features);
+    along random episodes (vehicles queueing, charging, parked) it equals the tensor
+    operations' float32 values exactly."""
+    from fleet_torchrl.env import FleetChargingEnv
+    from fleet_torchrl.env import encodings as enc
+    from fleet_torchrl.sim import SiteRanges
+    from fleet_torchrl.sim.fused import partial_features
+
+    if site_cfg == "randomized":
+        site_cfg = SiteConfig(ranges=SiteRanges(n_vehicles=[1, 5], p_c=[0.0, 0.9],
+                                                t_c=[10, 50])).validate()
+    env = FleetChargingEnv(site_cfg, num_sites=64, seed=3)
+    env.reset()
+    g = torch.Generator().manual_seed(0)
+    seen_busy = 0
+    for _ in range(40):
+        fast = partial_features(env.state)
+        assert fast is not None
+        with monkeypatch.context() as m:
+            m.setattr(enc, "partial_features", lambda s: None)
+            slow = enc.ENCODINGS["partial"](env.site, env.state)
+        assert fast.dtype == slow.dtype == torch.float32
+        assert torch.equal(fast, slow)
+        assert torch.equal(enc.ENCODINGS["partial"](env.site, env.state), slow)
+        seen_busy += int((slow[:, 2] > 0).sum())
+        act = torch.randint(0, 2, (64,), generator=g)
+        td = env.step(env.current().set("action", act))
+        if td["next", "done"].any():
+            env.reset(td["next"].select("done").set("_reset", td["next", "done"]))
+    # the charger's feature was exercised (one vehicle is never at C when one is at D)
+    assert seen_busy > 0 or site_cfg.n_vehicles == 1
