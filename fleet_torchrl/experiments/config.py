@@ -134,9 +134,9 @@ class SweepConfig:
     # site specialists: recipes (conf/recipes, row -> recipe name) trained on the point's
     # own site, cached like the searches; specialist_seeds training seeds (seed, seed + 1,
     # ...), more_seeds at the points of more_seeds_at ("<param>=<value>");
-    # specialist=false skips them. The planner distilled on the point's site is one more:
-    # +sweep.specialists.specialist_imitation=imitation (about 2.5 min per seed and point;
-    # the generalist, the planner distilled on the whole site distribution, is a row anyway)
+    # specialist=false skips them (and the distilled planner below). The student of the
+    # planner over the heuristic on the point's site is one more recipe:
+    # +sweep.specialists.specialist_imitation=imitation (about 2 min per seed and point)
     specialist: bool = True
     specialists: dict[str, str] = field(default_factory=lambda: {
         "specialist_dqn": "dqn_partial", "specialist_tabular": "tabular"})

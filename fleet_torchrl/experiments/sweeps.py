@@ -15,7 +15,10 @@ sites):
 * site specialists (``sweep.specialists``, unless ``sweep.specialist=false``): recipes of
   ``make table`` (DQN-partial, tabular, ...) trained on the point's own site, with
   ``sweep.specialist_seeds`` seeds (``sweep.more_seeds`` at the points of
-  ``sweep.more_seeds_at``), cached like the searches;
+  ``sweep.more_seeds_at``), cached like the searches; and the point's best planner
+  distilled on its site (``sweep.distil``, row ``specialist_distilled``: the imitation
+  recipe whose teacher is the planner over the ``planner_search`` row's search, else over
+  the heuristic; :func:`distil_teacher`), the same seeds;
 * the point's own searches (``sweep.searches``, unless ``sweep.search=false``: the direct
   policy search, MODEL §3.4, with
   policy classes that read the charger's remaining time), each started from the best start
@@ -44,8 +47,11 @@ policy's identity: a baseline's parameters, a saved policy's file hash, the sear
 the planner's settings). A rerun skips a point whose key matches and recomputes one whose
 settings or policies changed; a point on a site that another sweep has computed with the
 same settings (the default site is ``p_c`` 0.8, ``T_C`` 30 and ``N_V`` 3) takes that point's
-rows (``reused_from``). Each point records the wall time of its phases (``wall_s``). A
-point that fails writes an ``.error`` file beside it and
+rows (``reused_from``). Each point records the wall time of its phases (``wall_s``). Every
+evaluation (pick set, test sites, one-step improvements) goes through the evaluation cache
+of :mod:`fleet_torchrl.evaluation.cache` (``<sweep.search_dir>/evaluations``, keyed by the
+policy's content, the site, the protocol and the code): a point recomputed because a row
+was added computes that row only. A point that fails writes an ``.error`` file beside it and
 does not stop the other points. The saved policies must exist (``make policies`` trains
 what is missing); a job trains only its point's searches.
 """
