@@ -24,6 +24,7 @@ import json
 import logging
 from collections.abc import Callable
 from dataclasses import asdict, replace
+from functools import cache
 from pathlib import Path
 from typing import Any
 
@@ -33,7 +34,6 @@ from torch import nn
 from ..sim import SiteConfig
 from ..utils.runinfo import read_json, to_jsonable, write_json
 
-_CODE: list[str] = []
 #: the packages whose source decides an evaluation's numbers (relative to fleet_torchrl/)
 CODE_PATHS = ("sim", "agents", "evaluation", "env/encodings.py")
 
@@ -42,18 +42,17 @@ def _log() -> logging.Logger:
     return logging.getLogger(__name__)
 
 
+@cache
 def code_fingerprint() -> str:
     """Digest of the source files that decide an evaluation's numbers (once per process)."""
-    if not _CODE:
-        root = Path(__file__).resolve().parents[1]
-        h = hashlib.sha256()
-        for rel in CODE_PATHS:
-            p = root / rel
-            for f in sorted(p.rglob("*.py")) if p.is_dir() else [p]:
-                h.update(str(f.relative_to(root)).encode())
-                h.update(f.read_bytes())
-        _CODE.append(h.hexdigest()[:24])
-    return _CODE[0]
+    root = Path(__file__).resolve().parents[1]
+    h = hashlib.sha256()
+    for rel in CODE_PATHS:
+        p = root / rel
+        for f in sorted(p.rglob("*.py")) if p.is_dir() else [p]:
+            h.update(str(f.relative_to(root)).encode())
+            h.update(f.read_bytes())
+    return h.hexdigest()[:24]
 
 
 def _tensor_bytes(t: torch.Tensor) -> bytes:

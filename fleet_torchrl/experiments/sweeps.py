@@ -198,13 +198,10 @@ def search_start(cfg: Config, run_cfg: Config, policies: dict[str, Policy],
 def point_training(cfg: Config, run_cfg: Config, label: str) -> tuple[Policy, dict[str, Any]]:
     """A policy trained on the point's site with ``run_cfg`` (a search or a specialist),
     reused when its settings (and start) match, and its summary."""
-    init = Path(getattr(run_cfg.agent, "init", "") or "")
-    init = init / POLICY_FILE if init.is_dir() else init
-    start: Any = file_sha256(init) if init.is_file() else None
-    teacher = Path(getattr(getattr(run_cfg.agent, "expert", None), "base", "") or "")
-    teacher = teacher / POLICY_FILE if teacher.is_dir() else teacher
-    if teacher.is_file():  # a teacher over a saved policy: its content, not just its path
-        start = [start, file_sha256(teacher)]
+    start: Any = _policy_file_hash(getattr(run_cfg.agent, "init", None))
+    teacher = _policy_file_hash(getattr(getattr(run_cfg.agent, "expert", None), "base", None))
+    if teacher is not None:  # a teacher over a saved policy: its content, not just its path
+        start = [start, teacher]
     out = Path(cfg.sweep.search_dir) / label / digest([training_fingerprint(run_cfg), start])
     run_cfg.train.out_dir = str(out)
     if not reusable(out, run_cfg):
@@ -213,6 +210,14 @@ def point_training(cfg: Config, run_cfg: Config, label: str) -> tuple[Policy, di
     else:
         print(f"[sweep] {label}: reusing {out}", flush=True)
     return load_policy_file(out), read_json(out / "train_summary.json")
+
+
+def _policy_file_hash(path: str | None) -> str | None:
+    """The SHA-256 of the policy file ``path`` names (a file, or a folder holding one); None
+    for anything else (a baseline's name, nothing)."""
+    p = Path(path or "")
+    p = p / POLICY_FILE if p.is_dir() else p
+    return file_sha256(p) if p.is_file() else None
 
 
 def specialist_config(cfg: Config, site: SiteConfig, recipe: str, seed: int) -> Config:

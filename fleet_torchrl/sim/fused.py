@@ -248,8 +248,8 @@ def partial_features(state: SiteState) -> Tensor | None:
     built, where the caller's tensor operations serve)."""
     if state.pos.device.type != "cpu" or not _FEATURES["ok"]:
         return None
-    pos, soc, left = _state_arrays(state)[:3]
-    t_c = _state_arrays(state)[6]
+    arrays = _state_arrays(state)
+    pos, soc, left, t_c = arrays[0], arrays[1], arrays[2], arrays[6]
     out = np.empty((pos.shape[1], 3), dtype=np.float32)
     try:
         _k.call("partial_features", pos, soc, left, t_c, out)

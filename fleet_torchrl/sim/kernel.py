@@ -99,6 +99,15 @@ def soc_bin(f):
     return k
 
 
+def scaled_features(soc_d, others, tc_raw, t_c):
+    """The ``partial`` features in float32 from a site's soc at ``D``, its lowest other soc
+    (neither at ``D`` nor at ``C``) and its charger's ticks left + 1 (0 if free): the values
+    of the tensor encoding bit for bit (what :func:`decide` and :func:`partial_features`
+    both read)."""
+    return (soc_d * F32_SOC_SCALE, others * F32_SOC_SCALE,
+            np.float32(tc_raw) * np.float32(1.0 / (t_c + 1.0)))
+
+
 def decide(PL, E, nv, t_c, kind, row, pol_thr, pol_table, n_tc):
     """The in-kernel policy's action (True = charge) for the vehicle at ``D`` of a site whose
     vehicles are ``PL`` (nodes, charging ticks left) and ``E`` (soc): the ``partial``
@@ -114,9 +123,7 @@ def decide(PL, E, nv, t_c, kind, row, pol_thr, pol_table, n_tc):
             tc_raw = PL[1, v] + 1
         elif E[v] < others:
             others = E[v]
-    f0 = soc_d * F32_SOC_SCALE
-    f1 = others * F32_SOC_SCALE
-    f2 = np.float32(tc_raw) * np.float32(1.0 / (t_c + 1.0))
+    f0, f1, f2 = scaled_features(soc_d, others, tc_raw, t_c)
     if kind == THRESHOLD:
         if f0 <= pol_thr[row, THR_LOW]:
             return True
@@ -252,10 +259,12 @@ _jit = njit(cache=True, nogil=True)
 mix32 = _jit(mix32)
 closed_now = _jit(closed_now)
 soc_bin = _jit(soc_bin)
+scaled_features = njit(cache=True, nogil=True, inline="always")(scaled_features)
 decide = njit(cache=True, nogil=True, inline="always")(decide)
 run_site_range = _jit(run_site_range)
 # the device functions, callees first: what cuda_kernel rebinds to their CUDA versions
-DEVICE_FUNCTIONS = ("mix32", "closed_now", "soc_bin", "decide", "run_site_range")
+DEVICE_FUNCTIONS = ("mix32", "closed_now", "soc_bin", "scaled_features", "decide",
+                    "run_site_range")
 CHUNK = 64  # sites per run_site_range call of the parallel kernel
 
 
@@ -322,10 +331,8 @@ def partial_features(pos, soc, left, t_c, out):
                 tc_raw += left[v, b] + 1
             elif soc[v, b] < others:
                 others = soc[v, b]
-        tcb = t_c[0] if one else t_c[b]
-        out[b, 0] = soc_d * F32_SOC_SCALE
-        out[b, 1] = others * F32_SOC_SCALE
-        out[b, 2] = np.float32(tc_raw) * np.float32(1.0 / (tcb + 1.0))
+        out[b, 0], out[b, 1], out[b, 2] = scaled_features(soc_d, others, tc_raw,
+                                                          t_c[0] if one else t_c[b])
 
 
 # ------------------------------------------------------------------ the on-disk cache
@@ -335,8 +342,8 @@ def partial_features(pos, soc, left, t_c, out):
 # byte in the machine code, loads and runs. So this module keeps a manifest of the SHA-256 of
 # each cached data file (``.nbc``, written once per compiled signature) beside them, checks
 # it before the first kernel call of a process and rebuilds the cache when a file differs.
-CACHED = ("mix32", "closed_now", "soc_bin", "decide", "run_site_range", "advance_parallel",
-          "advance_serial", "partial_features")
+CACHED = ("mix32", "closed_now", "soc_bin", "scaled_features", "decide", "run_site_range",
+          "advance_parallel", "advance_serial", "partial_features")
 MANIFEST = "fleet_torchrl_kernel.sha256.json"
 _called: set[str] = set()  # the kernels that have run in this process
 _verified: list[bool] = []  # the manifest was checked in this process
