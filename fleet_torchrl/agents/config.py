@@ -395,6 +395,10 @@ class ImitationAgentConfig(AgentConfig):
     beta_start: float = 1.0  # probability of acting with the expert in round 0
     beta_end: float = 0.0  # ... falling linearly to this
     beta_rounds: int = 5  # ... over this many rounds (then it stays at beta_end)
+    # expert iteration: from this round on (>= 1) the teacher is the planner over the student
+    # as it stood when the round began; 0 = never (neutral: runs saved before it keep their
+    # training fingerprint)
+    iterate_from: int = field(default=0, metadata={"neutral": 0})
     capacity: int = 500_000  # labelled states kept (all rounds aggregated; oldest go first)
     hidden: int = 128  # units per hidden layer of the student network
     depth: int = 3  # hidden layers (ReLU)
@@ -414,6 +418,8 @@ class ImitationAgentConfig(AgentConfig):
         check_range(f"{path}.beta_end", self.beta_end, 0.0, self.beta_start,
                     allowed=f"[0, beta_start = {self.beta_start}]")
         check_range(f"{path}.beta_rounds", self.beta_rounds, 1, 1_000_000)
+        check_range(f"{path}.iterate_from", self.iterate_from, 0, self.rounds,
+                    allowed=f"0 (never) or [1, rounds = {self.rounds}]")
         check_range(f"{path}.capacity", self.capacity, 1, 100_000_000)
         check_range(f"{path}.hidden", self.hidden, 1, 4096)
         check_range(f"{path}.depth", self.depth, 0, 16)

@@ -163,7 +163,8 @@ def _imitation_learner(c: LearnerContext) -> Learner:
 
 
 register(AgentSpec("imitation", ImitationAgentConfig, ImitationPolicy,
-                   make_learner=_imitation_learner, states=("partial", "partial_site")))
+                   make_learner=_imitation_learner,
+                   states=("partial", "partial_site", "all")))
 
 
 # ------------------------------------------------------------------------ lookups

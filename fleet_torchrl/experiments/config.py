@@ -166,8 +166,9 @@ class SweepConfig:
     # the point's best planner distilled on the point's own site (row specialist_distilled,
     # a recipe of agent=imitation): its teacher is the planner over the base of the
     # planner_search row (the point's best search) where there is one, else over the
-    # heuristic; the specialists' seeds; null (or specialist=false) skips it (about 2 min
-    # per seed and point)
+    # heuristic, unless a row beats every planner row on the pick set: then the planner over
+    # that row; the student reads its teacher's base's state; the specialists' seeds; null
+    # (or specialist=false) skips it (about 2 min per seed and point, 5-10 over a network)
     distil: str | None = "imitation"
     # every evaluation of a point (pick set, test sites, one-step improvements) is cached
     # under <search_dir>/evaluations by the policy's content, the site, the protocol and the

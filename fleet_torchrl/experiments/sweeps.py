@@ -18,7 +18,8 @@ sites):
   ``sweep.more_seeds_at``), cached like the searches; and the point's best planner
   distilled on its site (``sweep.distil``, row ``specialist_distilled``: the imitation
   recipe whose teacher is the planner over the ``planner_search`` row's search, else over
-  the heuristic; :func:`distil_teacher`), the same seeds;
+  the heuristic, or over a row that beats every planner on the pick set, the student
+  reading that row's state; :func:`distil_base`), the same seeds;
 * the point's own searches (``sweep.searches``, unless ``sweep.search=false``: the direct
   policy search, MODEL §3.4, with
   policy classes that read the charger's remaining time), each started from the best start
@@ -69,6 +70,7 @@ from typing import Any
 from ..agents import AGENTS, load_policy_file
 from ..agents.base import GuardedPolicy, Policy
 from ..agents.baselines import HeuristicPolicy
+from ..agents.config import BASELINE_BASES
 from ..agents.planner import PlannerPolicy
 from ..agents.policy_files import POLICY_FILE
 from ..agents.search import SearchPolicy, cell_centres, clone_policy, threshold_start
@@ -220,10 +222,12 @@ def _policy_file_hash(path: str | None) -> str | None:
     return file_sha256(p) if p.is_file() else None
 
 
-def specialist_config(cfg: Config, site: SiteConfig, recipe: str, seed: int) -> Config:
-    """The training config of a specialist: a recipe of ``recipes`` on the point's own
-    site (a recipe of a site distribution cannot be a specialist)."""
-    run_cfg = compose_config([*cfg.recipes[recipe].overrides, f"seed={seed}",
+def specialist_config(cfg: Config, site: SiteConfig, recipe: str, seed: int,
+                      extra: list[str] | tuple[str, ...] = ()) -> Config:
+    """The training config of a specialist: a recipe of ``recipes`` (then ``extra``
+    overrides) on the point's own site (a recipe of a site distribution cannot be a
+    specialist)."""
+    run_cfg = compose_config([*cfg.recipes[recipe].overrides, *extra, f"seed={seed}",
                               "train.progress=false", "train.tensorboard=false"])
     if run_cfg.site.randomized:
         raise ConfigError(f"sweep.specialists: the recipe {recipe!r} trains on a site "
@@ -254,6 +258,9 @@ def point_key(cfg: Config, site: SiteConfig, search_cfgs: dict[str, Config],
         "search_seeded": s.search_seeded, "pick": [s.pick_sims, s.pick_ticks],
         "planner": asdict(planner_config(cfg)) if s.planner else None,
         "planner_search": s.planner and s.planner_search,
+        "distil": None if not (s.specialist and s.distil) else
+        "the planner over planner_search's base, or over a row better than every planner; "
+        "the student reads its base's state",
         "improve": [list(s.improve), s.improve_sims],
         "best_known": "best of every row on the pick set (failures, then trips)"}
     return digest(parts)
@@ -422,6 +429,8 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
                             for s, p in seed_paths(cfg, name).items()}
     summaries: dict[str, Any] = {}
     trained: dict[str, Path] = {}  # the point's own searches, possible starts of the next
+    files: dict[tuple[str, int | None], Path] = {  # every row's policy file (a teacher's base)
+        (n, s): p for n in cfg.sweep.policies for s, p in seed_paths(cfg, n).items()}
     t = time.perf_counter()
     for name, run_cfg in search_cfgs.items():
         if cfg.sweep.search_seeded and not any(o.split("=", 1)[0].lstrip("+~") == "agent.init"
@@ -434,6 +443,7 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
         summaries[name]["init"] = run_cfg.agent.init
         groups[name] = {None: pol}
         trained[name] = Path(run_cfg.train.out_dir) / POLICY_FILE
+        files[(name, None)] = trained[name]
     phase_s["searches"] = time.perf_counter() - t
     t = time.perf_counter()
     for row, runs in specialist_cfgs.items():
@@ -444,6 +454,7 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
             pol, summ = point_training(cfg, run_cfg, f"{label}/{row}/seed{seed}")
             groups[row][seed] = guard(_named(pol, row))
             summaries[f"{row}_seed{seed}"] = summ
+            files[(row, seed)] = Path(run_cfg.train.out_dir) / POLICY_FILE
     phase_s["specialists"] = time.perf_counter() - t
     t = time.perf_counter()
     keys = {(n, s): on_pick_set(cfg, site, p, cache) for n, g in groups.items()
@@ -465,15 +476,21 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
     phase_s["planners_pick_set"] = time.perf_counter() - t
     t = time.perf_counter()
     if DISTILLED in specialist_cfgs:
-        teacher = distil_teacher(cfg, next(reversed(planner_bases), None), trained)
+        base = distil_base(cfg, keys, planner_bases)
+        teacher = distil_teacher(cfg, base, files)
+        state = distil_state(cfg, groups, base)
         groups[DISTILLED] = {}
         for seed, run_cfg in specialist_cfgs[DISTILLED].items():
+            if state is not None:
+                run_cfg = specialist_config(cfg, site, cfg.sweep.distil, seed, [f"state={state}"])
             run_cfg.agent.expert = teacher
             pol, summ = point_training(cfg, run_cfg, f"{label}/{DISTILLED}/seed{seed}")
             groups[DISTILLED][seed] = guard(_named(pol, DISTILLED))
-            summaries[f"{DISTILLED}_seed{seed}"] = {**summ, "teacher_base": teacher.base}
+            summaries[f"{DISTILLED}_seed{seed}"] = {**summ, "teacher_base": teacher.base,
+                                                    "state": run_cfg.state.name}
             keys[(DISTILLED, seed)] = on_pick_set(cfg, site, groups[DISTILLED][seed], cache)
-        print(f"[sweep] {label} {DISTILLED}: the planner over {teacher.base} distilled",
+        print(f"[sweep] {label} {DISTILLED}: the planner over {teacher.base} distilled "
+              f"onto the {run_cfg.state.name} state",
               flush=True)
     phase_s["distil"] = time.perf_counter() - t
     best = best_of(keys)
@@ -529,7 +546,7 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
                           for (n, s), k in keys.items()}},
                       "guard": cfg.sweep.guard,
                       "trainings": {n: {**{k: v[k] for k in ("run_dir", "wall_s", "best")},
-                                        **{k: v[k] for k in ("init", "teacher_base")
+                                        **{k: v[k] for k in ("init", "teacher_base", "state")
                                            if k in v}}
                                     for n, v in summaries.items()},
                       "meta": run_info(cfg, seed=e.seed)})
@@ -617,16 +634,57 @@ def one_step(cfg: Config, site: SiteConfig, groups: dict[str, dict[int | None, P
     return out
 
 
-def distil_teacher(cfg: Config, base: str | None, trained: dict[str, Path]) -> Any:
+def distil_base(cfg: Config, keys: dict[tuple[str, int | None], tuple[float, float]],
+                planner_bases: dict[str, str]) -> tuple[str, int | None] | None:
+    """The base of the teacher of row ``specialist_distilled``, as ``(row, seed)``: the base
+    of the point's last planner row (``planner_search``'s search, else the heuristic), unless
+    a row that is neither a planner nor a student of one beats every planner row on the pick
+    set: then the best such row (the planner over a policy better than every planner we
+    have is the better teacher; measured at ``T_C`` = 10, docs/TRAINING.md). None: no
+    planner rows (the heuristic)."""
+    if not planner_bases:
+        return None
+    base = next(reversed(planner_bases))
+    rows = {PLANNER, PLANNER_SEARCH, *planner_bases.values()}
+    planners = {k: v for k, v in keys.items() if k[0] in rows}
+    others = {k: v for k, v in keys.items() if k[0] not in rows and k[0] != DISTILLED}
+    if others and planners and min(others.values()) < min(planners.values()):
+        return best_of(others)
+    return (base, None)
+
+
+def distil_teacher(cfg: Config, base: tuple[str, int | None] | None,
+                   files: dict[tuple[str, int | None], Path]) -> Any:
     """The teacher of row ``specialist_distilled``: the sweep's planner settings over the
-    base of the point's last planner row (``planner_search``'s search, by its policy file;
-    the heuristic when the point has no planner over a search)."""
+    row ``base`` (:func:`distil_base`), by its policy file (the heuristic by name)."""
     teacher = planner_config(cfg)
-    if base is not None and base in trained:
-        teacher.base = str(trained[base])
-    elif base is not None and base != "heuristic":
-        raise ConfigError(f"the distilled planner's base {base!r} has no policy file")
+    if base is None or base == ("heuristic", None):
+        teacher.base = "heuristic"
+    elif base in files:
+        teacher.base = str(files[base])
+    elif base[0] in AGENTS and not AGENTS[base[0]].trainable:
+        teacher.base = base[0]
+        if teacher.base not in BASELINE_BASES:
+            raise ConfigError(f"the distilled planner's base {base[0]!r} cannot be a "
+                              f"planner's base (allowed {', '.join(BASELINE_BASES)} or a "
+                              "policy file)")
+    else:
+        raise ConfigError(f"the distilled planner's base {base[0]!r} has no policy file")
     return teacher
+
+
+def distil_state(cfg: Config, groups: dict[str, dict[int | None, Policy]],
+                 base: tuple[str, int | None] | None) -> str | None:
+    """The state the distilled student reads, where it differs from its recipe's: the
+    state its teacher's base reads (a student needs what its teacher's base decides on:
+    a DQN reading every node orders the vehicles in a way the ``partial`` state cannot
+    show), if the imitation learner accepts it; None keeps the recipe's."""
+    if base is None:
+        return None
+    enc = getattr(groups.get(base[0], {}).get(base[1]), "encoding", None)
+    recipe = compose_config(list(cfg.recipes[cfg.sweep.distil].overrides)).state.name
+    states = AGENTS["imitation"].states or ()
+    return enc if enc != recipe and enc in states else None
 
 
 def evaluated(cache: EvalCache, pol: Policy, site: SiteConfig, e: Any, name: str

@@ -10,7 +10,7 @@ from __future__ import annotations
 import pickle
 import zipfile
 import zlib
-from dataclasses import asdict
+from dataclasses import asdict, fields, is_dataclass
 from pathlib import Path
 from typing import Any
 
@@ -30,10 +30,19 @@ RUN_CONTROL = {"out_dir", "device", "threads", "tensorboard", "progress", "check
 
 
 def training_fingerprint(cfg: Config) -> dict[str, Any]:
-    """The part of the config that determines what a training run computes."""
+    """The part of the config that determines what a training run computes. An agent
+    setting added after runs were saved, declared with ``field(metadata={"neutral": v})``,
+    is left out while it is ``v``, the value that computes what the runs before it did: the
+    saved runs keep their fingerprint (and stay reusable and resumable)."""
     train = {k: v for k, v in asdict(cfg.train).items() if k not in RUN_CONTROL}
+    agent: Any = cfg.agent
+    if is_dataclass(agent):
+        neutral = {f.name: f.metadata["neutral"] for f in fields(agent)
+                   if "neutral" in f.metadata}
+        agent = {k: v for k, v in to_jsonable(agent).items()
+                 if not (k in neutral and v == neutral[k])}
     return to_jsonable({"site": cfg.site, "state": cfg.state, "mdp": cfg.mdp,
-                        "agent": cfg.agent, "network": cfg.network, "train": train,
+                        "agent": agent, "network": cfg.network, "train": train,
                         "seed": cfg.seed})
 
 

@@ -146,8 +146,66 @@ def test_config_and_names():
         == "imitation_partial_site_five_vehicles"
     assert policy_name(compose_config(["agent=imitation", "agent.expert.base=rule"])) \
         == "imitation_partial_over_rule"
-    with pytest.raises(ConfigError, match="state.name='all' is invalid for agent=imitation"):
-        compose_config(["agent=imitation", "state=all"])
+    assert policy_name(compose_config(["agent=imitation", "state=all"])) == "imitation_all"
+    with pytest.raises(ConfigError, match="agent.iterate_from=41 is invalid"):
+        compose_config(["agent=imitation", "agent.iterate_from=41"])  # rounds = 40
+
+
+def test_a_neutral_new_setting_keeps_the_saved_runs_fingerprint():
+    """agent.iterate_from (added after runs were saved) at its neutral 0 is left out of the
+    training fingerprint: those runs stay reusable and resumable; any other value is in it,
+    and a resume across the change is refused with the field named."""
+    from fleet_torchrl.training import training_fingerprint
+    from fleet_torchrl.training.checkpoint import fingerprint_diff
+
+    plain = training_fingerprint(compose_config(["agent=imitation"]))
+    assert "iterate_from" not in plain["agent"] and plain["agent"]["rounds"] == 40
+    other = training_fingerprint(compose_config(["agent=imitation", "agent.iterate_from=5"]))
+    assert other["agent"]["iterate_from"] == 5
+    assert fingerprint_diff(plain, other) == ["agent.iterate_from: None -> 5"]
+
+
+def test_expert_iteration_teaches_with_the_planner_over_the_student():
+    """From round iterate_from on, the labels are the planner's decisions over a frozen copy
+    of the student as it stood when the round began (the configured planner's settings);
+    before it, over the configured base. The copy does not follow the student's updates."""
+    b = 8
+    env = FleetChargingEnv(FIVE, num_sites=b, seed=2, mdp=MDPConfig(tau_e=40))
+    lrn = learner(env, num_sites=b, iterate_from=2, updates_per_round=5, batch_size=8)
+    first = lrn.expert
+    td = env.reset()
+    for r in range(4):
+        lrn.start_round(r)
+        if r < 2:
+            assert lrn.expert is first and isinstance(first.base, HeuristicPolicy)
+        else:
+            teacher = lrn.expert
+            assert isinstance(teacher, PlannerPolicy) and teacher is not first
+            assert isinstance(teacher.base, ImitationPolicy) and teacher.base is not lrn.student
+            assert (teacher.rollouts, teacher.horizon, teacher.seed) == \
+                (first.rollouts, first.horizon, first.seed)
+            for p, q in zip(teacher.base.parameters(), lrn.student.parameters(), strict=True):
+                assert torch.equal(p, q) and not p.requires_grad
+            # its labels are the planner over that student, on the environment's states
+            index = (env.episodes - 1) * b + torch.arange(b)
+            want = PlannerPolicy(teacher.base, first.rollouts, first.horizon, first.energy_value,
+                                 first.confidence, first.seed).decide(
+                env.site, env.state, DecisionContext(torch.ones(b, dtype=torch.bool), index,
+                                                     True))
+            td = lrn.act(td)
+            assert torch.equal(lrn._label, want.long())
+            td, root = env.step_and_maybe_reset(td)
+            lrn.observe(td, torch.ones(b, dtype=torch.bool))
+            td = root
+        for _ in range(3):
+            td = lrn.act(td)
+            td, root = env.step_and_maybe_reset(td)
+            lrn.observe(td, torch.ones(b, dtype=torch.bool))
+            td = root
+        lrn.update()  # the student moves; a frozen copy taken before it does not
+        if r >= 2:
+            assert any(not torch.equal(p, q) for p, q in zip(
+                teacher.base.parameters(), lrn.student.parameters(), strict=True))
 
 
 # ---------------------------------------------------------------------- training runs
@@ -168,12 +226,15 @@ def _train(overrides, tmp, stop_after=None, resume=False):
     return tr, tr.run(stop_after_rounds=stop_after)
 
 
-@pytest.mark.parametrize("capacity", [500_000, 150])
-def test_resume_ends_where_an_uninterrupted_run_does(tmp_path, capacity):
+@pytest.mark.parametrize("extra", [["agent.capacity=500000"], ["agent.capacity=150"],
+                                   ["agent.iterate_from=2"]])
+def test_resume_ends_where_an_uninterrupted_run_does(tmp_path, extra):
     """Killed after round 2's checkpoint and resumed: the same data set, the same student,
     the same evaluations and the same policy bytes as a run that was never stopped (also
-    when the data set has wrapped around: 96 labels a round, capacity 150)."""
-    tiny = [*TINY, f"agent.capacity={capacity}"]
+    when the data set has wrapped around: 96 labels a round, capacity 150; and under expert
+    iteration, whose teacher after the resume is the planner over the resumed student)."""
+    tiny = [*TINY, *extra]
+    capacity = 150 if "agent.capacity=150" in extra else 500_000
     full, s_full = _train(tiny, tmp_path / "a")
     _train(tiny, tmp_path / "b", stop_after=2)
     res, s_res = _train(tiny, tmp_path / "b", resume=True)

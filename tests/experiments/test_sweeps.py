@@ -130,6 +130,48 @@ def test_planner_search_is_the_planner_over_the_best_search_that_beats_the_heuri
     assert search_base(compose_config(["sweep.planner=false"]), groups, keys) is None
 
 
+def test_the_distilled_rows_teacher_and_state(tmp_path):
+    """Row specialist_distilled: the planner over planner_search's base (else the
+    heuristic's), unless a row beats every planner row on the pick set: then over the best
+    such row, by its policy file; the student reads its base's state where the imitation
+    learner accepts it and it differs from the recipe's."""
+    from fleet_torchrl.agents import HeuristicPolicy
+    from fleet_torchrl.agents.config import NetworkConfig
+    from fleet_torchrl.agents.dqn import DQNPolicy
+    from fleet_torchrl.agents.search import SearchPolicy
+    from fleet_torchrl.config import compose_config
+    from fleet_torchrl.experiments.sweeps import distil_base, distil_state, distil_teacher
+    from fleet_torchrl.utils.checks import ConfigError
+
+    cfg = compose_config([])
+    groups = {"heuristic": {None: HeuristicPolicy()},
+              "search_threshold": {None: SearchPolicy("threshold")},
+              "dqn_all": {s: DQNPolicy(NetworkConfig(), 31, "all") for s in (0, 1)}}
+    keys = {("heuristic", None): (0.0, -100.0), ("search_threshold", None): (0.0, -101.0),
+            ("dqn_all", 0): (0.0, -101.5), ("dqn_all", 1): (0.0, -99.0),
+            ("planner", None): (0.0, -102.0), ("planner_search", None): (0.0, -103.0),
+            ("specialist_distilled", 0): (0.0, -200.0)}  # a student of a planner: no base
+    bases = {"heuristic": "planner", "search_threshold": "planner_search"}
+    files = {("search_threshold", None): tmp_path / "t.pt", ("dqn_all", 0): tmp_path / "a.pt",
+             ("dqn_all", 1): tmp_path / "b.pt"}
+    assert distil_base(cfg, keys, bases) == ("search_threshold", None)
+    assert distil_teacher(cfg, ("search_threshold", None), files).base == str(tmp_path / "t.pt")
+    assert distil_state(cfg, groups, ("search_threshold", None)) is None  # partial: the recipe's
+    keys[("dqn_all", 0)] = (0.0, -103.5)  # better than every planner: the planner over it
+    assert distil_base(cfg, keys, bases) == ("dqn_all", 0)
+    teacher = distil_teacher(cfg, ("dqn_all", 0), files)
+    assert teacher.base == str(tmp_path / "a.pt") and teacher.rollouts == 32
+    assert distil_state(cfg, groups, ("dqn_all", 0)) == "all"
+    keys[("planner_search", None)] = (0.0, -104.0)
+    assert distil_base(cfg, keys, bases) == ("search_threshold", None)
+    assert distil_base(cfg, keys, {"heuristic": "planner"}) == ("heuristic", None)
+    assert distil_teacher(cfg, ("heuristic", None), files).base == "heuristic"
+    assert distil_base(cfg, keys, {}) is None and distil_teacher(cfg, None, files).base \
+        == "heuristic"
+    with pytest.raises(ConfigError, match="has no policy file"):
+        distil_teacher(cfg, ("dqn_partial", 0), files)
+
+
 def test_a_sweep_on_a_site_distribution_is_refused():
     from fleet_torchrl.config import compose_config
     from fleet_torchrl.experiments.sweeps import run_point
@@ -232,11 +274,20 @@ def test_miniature_sweep_end_to_end(tmp_path, saved_policies, command):
     point = json.loads((out / "pc" / "p_c=0.8.json").read_text())
     assert point["guard"] is True
     # the distilled row's teacher: the planner over the planner_search row's search (its
-    # policy file), else over the heuristic
+    # policy file), else over the heuristic, unless a row beats every planner on the pick
+    # set: then over that row
     for v, p in (("0.4", out / "pc" / "p_c=0.4.json"), ("0.8", out / "pc" / "p_c=0.8.json")):
-        teacher = json.loads(p.read_text())["trainings"]["specialist_distilled_seed0"][
-            "teacher_base"]
-        if "planner_search" in extra[v]:
+        pt = json.loads(p.read_text())
+        teacher = pt["trainings"]["specialist_distilled_seed0"]["teacher_base"]
+        pick = {k: (q["failure_rate"], -q["trips_mean"])
+                for k, q in pt["best_known"]["pick_set"].items()}
+        plans = [q for k, q in pick.items() if k.startswith("planner")]
+        others = {k: q for k, q in pick.items()
+                  if not k.startswith(("planner", "specialist_distilled"))}
+        top = min(others, key=others.get)
+        if others[top] < min(plans):
+            assert top.split("_seed")[0] in teacher, (teacher, top)
+        elif "planner_search" in extra[v]:
             assert teacher.startswith(str(tmp_path / "search" / f"p_c={v}" / "search_"))
         else:
             assert teacher == "heuristic"
