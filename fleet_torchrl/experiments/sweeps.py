@@ -638,10 +638,10 @@ def distil_base(cfg: Config, keys: dict[tuple[str, int | None], tuple[float, flo
                 planner_bases: dict[str, str]) -> tuple[str, int | None] | None:
     """The base of the teacher of row ``specialist_distilled``, as ``(row, seed)``: the base
     of the point's last planner row (``planner_search``'s search, else the heuristic), unless
-    a row that is neither a planner nor a student of one beats every planner row on the pick
-    set: then the best such row (the planner over a policy better than every planner we
-    have is the better teacher; measured at ``T_C`` = 10, docs/TRAINING.md). None: no
-    planner rows (the heuristic)."""
+    another row (neither a planner row nor this row itself) beats every planner row on the
+    pick set: then the best such row (the planner over a policy better than every planner
+    we have is the better teacher; measured at ``T_C`` = 10, docs/TRAINING.md section 14).
+    None: no planner rows (the teacher is then the planner over the heuristic)."""
     if not planner_bases:
         return None
     base = next(reversed(planner_bases))
