@@ -194,6 +194,10 @@ COMMANDS = [
     ("sweeps", ["sweep.param=n_vehicles", "sweep.value=3", "sweep.name=mine",
                 "sweep.out=sweeps"], "sweep.name"),
     ("sweeps", ["sweep.out=afile"], "sweep.out"),
+    # a generalist's recipe (site=randomized) cannot train on a point's own site
+    ("sweeps", ["sweep.distil=generalist"], "sweep.distil"),
+    ("sweeps", ["+sweep.specialists.specialist_g=generalist_dqn"],
+     "sweep.specialists.specialist_g"),
     ("table", ["table.policies_dir=afile"], "table.policies_dir"),
     ("table", ["table.seeds=0"], "table.seeds"),
     ("table", ["table.only=[nonexistent]"], "nonexistent"),
