@@ -3,8 +3,8 @@
 The rollout planner (:mod:`fleet_torchrl.agents.planner`) decides well where the heuristic
 does not (``N_V`` = 5: +8 % over the rule against the heuristic's +3 %), but each of its
 decisions simulates ``2 K`` futures of ``H`` ticks. This learner trains a small classifier
-on an encoding of the state (``partial`` or ``partial_site``) to take the planner's
-decisions, so that planner-like decisions cost one forward pass.
+on an encoding of the state (``partial``, ``all`` or their ``_site`` variants) to take
+the planner's decisions, so that planner-like decisions cost one forward pass.
 
 **DAgger** (Ross, Gordon and Bagnell, 2011). A round plays ``agent.steps_per_round``
 decisions of ``agent.num_sites`` sites of the training environment (episodes run on across

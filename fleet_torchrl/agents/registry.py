@@ -164,7 +164,7 @@ def _imitation_learner(c: LearnerContext) -> Learner:
 
 register(AgentSpec("imitation", ImitationAgentConfig, ImitationPolicy,
                    make_learner=_imitation_learner,
-                   states=("partial", "partial_site", "all")))
+                   states=("partial", "partial_site", "all", "all_site")))
 
 
 # ------------------------------------------------------------------------ lookups

@@ -12,6 +12,7 @@ no node, so they change no feature.
 * ``all`` (``N_N + 1``): the soc on every node (0 if empty), then ``TC``.
 * ``partial_site`` (6): ``partial``, then the site's own ``N_V / N_N``, ``p_c`` and
   ``T_C / (T_C + N_N)`` (constant on one site; per site on a site distribution).
+* ``all_site`` (``N_N + 4``): ``all``, then the same three features of the site.
 
 Add an encoding by subclassing :class:`Encoding`, registering it in :data:`ENCODINGS` (config
 validation reads this registry) and adding a ``fleet_torchrl/conf/state/<name>.yaml``.
@@ -110,16 +111,34 @@ class PartialSite(Encoding):
         return 6
 
     def __call__(self, site: Site, s: SiteState) -> Tensor:
-        base = ENCODINGS["partial"](site, s)
-        n = float(site.n_nodes)
-        n_v = s.params.n_vehicles.to(torch.float32)
-        p_c = s.params.p_c.to(torch.float32)
-        t_c = s.params.t_c.to(torch.float32)
-        return torch.cat((base, torch.stack((n_v / n, p_c, t_c / (t_c + n)), dim=1)), dim=1)
+        return torch.cat((ENCODINGS["partial"](site, s), site_features(site, s)), dim=1)
+
+
+class AllSite(Encoding):
+    """``all`` plus the three site features of ``partial_site``: which vehicle comes next
+    and how charged it is (what matters on a fast charger, docs/TRAINING.md section 14),
+    on every site of a distribution."""
+
+    name = "all_site"
+
+    def size(self, site: Site) -> int:
+        return site.n_nodes + 4
+
+    def __call__(self, site: Site, s: SiteState) -> Tensor:
+        return torch.cat((ENCODINGS["all"](site, s), site_features(site, s)), dim=1)
+
+
+def site_features(site: Site, s: SiteState) -> Tensor:
+    """Each site's ``N_V / N_N``, ``p_c`` and ``T_C / (T_C + N_N)``: ``[B, 3]`` float32."""
+    n = float(site.n_nodes)
+    n_v = s.params.n_vehicles.to(torch.float32)
+    p_c = s.params.p_c.to(torch.float32)
+    t_c = s.params.t_c.to(torch.float32)
+    return torch.stack((n_v / n, p_c, t_c / (t_c + n)), dim=1)
 
 
 ENCODINGS: dict[str, Encoding] = {"partial": Partial(), "all": All(),
-                                  "partial_site": PartialSite()}
+                                  "partial_site": PartialSite(), "all_site": AllSite()}
 
 
 def get_encoding(name: str) -> Encoding:

@@ -227,12 +227,14 @@ def _train(overrides, tmp, stop_after=None, resume=False):
 
 
 @pytest.mark.parametrize("extra", [["agent.capacity=500000"], ["agent.capacity=150"],
-                                   ["agent.iterate_from=2"]])
+                                   ["agent.iterate_from=2"],
+                                   ["state=all_site", "site=randomized"]])
 def test_resume_ends_where_an_uninterrupted_run_does(tmp_path, extra):
     """Killed after round 2's checkpoint and resumed: the same data set, the same student,
     the same evaluations and the same policy bytes as a run that was never stopped (also
     when the data set has wrapped around: 96 labels a round, capacity 150; and under expert
-    iteration, whose teacher after the resume is the planner over the resumed student)."""
+    iteration, whose teacher after the resume is the planner over the resumed student; and
+    a generalist reading every node and its site)."""
     tiny = [*TINY, *extra]
     capacity = 150 if "agent.capacity=150" in extra else 500_000
     full, s_full = _train(tiny, tmp_path / "a")

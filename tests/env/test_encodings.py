@@ -55,6 +55,23 @@ def test_partial_site_is_partial_plus_the_sites_own_parameters():
     assert torch.allclose(get_encoding("partial")(site, s)[:, 2], 1.0 / (p.t_c + 1.0))
 
 
+def test_all_site_is_all_plus_the_sites_own_parameters():
+    from fleet_torchrl.sim import SiteRanges
+
+    mixed = SiteConfig(ranges=SiteRanges(n_vehicles=[1, 5], p_c=[0.0, 0.9],
+                                         t_c=[10, 50])).validate()
+    site = Site(mixed)
+    s, _ = site.init_state(3, torch.arange(64))
+    obs = get_encoding("all_site")(site, s)
+    assert obs.shape == (64, 15 + 4) and get_encoding("all_site").size(site) == 19
+    assert torch.equal(obs[:, :16], get_encoding("all")(site, s))
+    assert torch.equal(obs[:, 16:], get_encoding("partial_site")(site, s)[:, 3:])
+    p = s.params
+    assert torch.allclose(obs[:, 16], p.n_vehicles / 15.0)
+    assert torch.allclose(obs[:, 18], p.t_c / (p.t_c + 15.0))
+    assert p.n_vehicles.unique().numel() > 1  # (the sites differ: the features do)
+
+
 def test_env_specs_of_every_encoding_on_a_site_distribution():
     from torchrl.envs.utils import check_env_specs
 
@@ -63,7 +80,7 @@ def test_env_specs_of_every_encoding_on_a_site_distribution():
 
     mixed = SiteConfig(ranges=SiteRanges(n_vehicles=[1, 5], p_c=[0.0, 0.9],
                                          t_c=[10, 50])).validate()
-    for name in ("partial", "all", "partial_site"):
+    for name in ("partial", "all", "partial_site", "all_site"):
         env = FleetChargingEnv(mixed, name, num_sites=8, seed=0)
         check_env_specs(env, seed=0)
 
