@@ -175,14 +175,13 @@ def validate(cfg: Config) -> Config:
     cfg.sweep.validate(known)
     for row, recipe in cfg.sweep.specialists.items():
         check_choice(f"sweep.specialists.{row}", recipe, tuple(cfg.recipes))
-        check_point_recipe(f"sweep.specialists.{row}", recipe, cfg.recipes[recipe].overrides)
+        check_point_recipe(f"sweep.specialists.{row}", recipe, cfg.recipes[recipe])
     if cfg.sweep.distil is not None:
         check_choice("sweep.distil", cfg.sweep.distil, tuple(cfg.recipes))
         if "agent=imitation" not in cfg.recipes[cfg.sweep.distil].overrides:
             raise ConfigError(f"sweep.distil={cfg.sweep.distil!r} is invalid: allowed a "
                               "recipe of agent=imitation (the planner distilled), or null")
-        check_point_recipe("sweep.distil", cfg.sweep.distil,
-                           cfg.recipes[cfg.sweep.distil].overrides)
+        check_point_recipe("sweep.distil", cfg.sweep.distil, cfg.recipes[cfg.sweep.distil])
     cfg.maps.validate(known)
     cfg.objective.validate()
     cfg.bench.validate()
@@ -190,15 +189,14 @@ def validate(cfg: Config) -> Config:
     return cfg
 
 
-def check_point_recipe(path: str, recipe: str, overrides: list[str]) -> None:
+def check_point_recipe(path: str, name: str, recipe: Recipe) -> None:
     """A recipe a sweep trains on the point's own site (a specialist, the distilled
     planner) must not choose a site itself: the point's site would replace it unseen."""
-    for o in overrides:
-        key = o.split("=", 1)[0].lstrip("+~")
-        if key.split(".")[0] == "site":
-            raise ConfigError(f"{path}={recipe!r} is invalid: the recipe sets {o!r}, and a "
-                              "sweep trains it on the point's own site; allowed a recipe "
-                              "without site overrides (not a generalist's)")
+    o = recipe.site_override()
+    if o is not None:
+        raise ConfigError(f"{path}={name!r} is invalid: the recipe sets {o!r}, and a sweep "
+                          "trains it on the point's own site; allowed a recipe without site "
+                          "overrides (not a generalist's)")
 
 
 def check_memory_needs(cfg: Config, trainable: bool) -> None:

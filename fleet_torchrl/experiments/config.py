@@ -50,6 +50,12 @@ class Recipe:
         """The overrides of this recipe's training run (with the preview's budget)."""
         return [*self.overrides, *(self.preview if preview else [])]
 
+    def site_override(self) -> str | None:
+        """The first override that chooses the site (``site=randomized``, ``site.t_c=10``),
+        None when the recipe trains on whatever site it is given."""
+        return next((o for o in self.overrides
+                     if o.split("=", 1)[0].lstrip("+~").split(".")[0] == "site"), None)
+
 
 def validate_recipes(recipes: dict[str, Recipe], reserved: tuple[str, ...],
                      path: str = "recipes") -> dict[str, Recipe]:

@@ -107,8 +107,7 @@ def site_overrides(cfg: Config) -> list[str]:
 
 
 def _sets_site(cfg: Config, name: str) -> bool:
-    return any(o.split("=", 1)[0].lstrip("+~").split(".")[0] == "site"
-               for o in cfg.recipes[name].overrides)
+    return cfg.recipes[name].site_override() is not None
 
 
 def recipe_folder(cfg: Config, name: str) -> str:
