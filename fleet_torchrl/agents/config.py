@@ -362,16 +362,19 @@ class PlannerAgentConfig(AgentConfig):
     energy_value: float = 0.02  # trips per unit of soc left in the fleet at the horizon
     confidence: float = 1.5  # standard errors by which the other action must score better
     seed: int = 0  # the planner's own random streams
+    # more base policies (parallel rollout): each decision's futures run under every base, the
+    # planner starts from the base whose own action scores best there and takes the other
+    # action where some base scores it significantly better; [] = the one base (neutral: runs
+    # saved before it keep their training fingerprint)
+    bases: list[str] = field(default_factory=list, metadata={"neutral": []})
 
     def validate(self, cfg: Any = None, path: str = "agent") -> PlannerAgentConfig:
-        if self.base not in BASELINE_BASES:
-            from pathlib import Path
-
-            p = Path(self.base)
-            if not (p.is_file() or (p / "policy.pt").is_file()):
-                raise ConfigError(f"{path}.base={self.base!r} is invalid: allowed one of "
-                                  f"{', '.join(BASELINE_BASES)} or the path of a saved policy "
-                                  "(policy.pt or its folder) that exists")
+        _check_base(self.base, f"{path}.base")
+        if len(self.bases) > 8:
+            raise ConfigError(f"{path}.bases has {len(self.bases)} entries: allowed at most 8 "
+                              "(each one adds the planner's futures once more)")
+        for i, b in enumerate(self.bases):
+            _check_base(b, f"{path}.bases[{i}]")
         check_range(f"{path}.rollouts", self.rollouts, 2, 4096)
         check_range(f"{path}.horizon", self.horizon, 1, 1_000_000)
         check_range(f"{path}.energy_value", self.energy_value, 0.0, 10.0)
@@ -380,7 +383,24 @@ class PlannerAgentConfig(AgentConfig):
         return self
 
     def sites_per_simulation(self) -> int:
-        return 1 + 2 * self.rollouts  # each deciding site imagines 2 x rollouts futures
+        # each deciding site imagines 2 x rollouts futures under each base
+        return 1 + 2 * self.rollouts * (1 + len(self.bases))
+
+    def all_bases(self) -> list[str]:
+        return [self.base, *self.bases]
+
+
+def _check_base(base: Any, path: str) -> None:
+    """A planner's base: a baseline's name or a saved policy (its file or folder) that exists."""
+    if base in BASELINE_BASES:
+        return
+    from pathlib import Path
+
+    p = Path(str(base))
+    if not isinstance(base, str) or not (p.is_file() or (p / "policy.pt").is_file()):
+        raise ConfigError(f"{path}={base!r} is invalid: allowed one of "
+                          f"{', '.join(BASELINE_BASES)} or the path of a saved policy "
+                          "(policy.pt or its folder) that exists")
 
 
 @dataclass
@@ -455,8 +475,12 @@ class ImitationAgentConfig(AgentConfig):
 
     def run_suffix(self, mdp: Any) -> str:
         """Nothing for the default teacher (the planner over the heuristic); ``_over_<base>``
-        for another base (a saved policy: ``_over_policy-<8 hex digits of its path>``)."""
+        for another base (a saved policy: ``_over_policy-<8 hex digits of its path>``); for
+        several (``expert.bases``) ``_over_bases-<8 hex digits of their names>``."""
         base = self.expert.base
+        if self.expert.bases:  # parallel rollout: the hash of every base's name or path
+            names = "\n".join(self.expert.all_bases())
+            return f"_over_bases-{hashlib.sha256(names.encode()).hexdigest()[:8]}"
         if base == "heuristic":
             return ""
         if base in BASELINE_BASES:

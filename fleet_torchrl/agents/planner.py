@@ -25,6 +25,13 @@ the better action:
   1.5 % of the study's sites at ``N_V`` = 5 without it, each time after passing a vehicle
   at about 38 % that did not finish its lap).
 
+* **Several bases** (``agent.bases``: parallel rollout). The same futures run under every
+  base; the reference is the base whose own action fails in fewest futures, then scores
+  best, and the other action is scored under whichever base scores it best. The gate and
+  the safety line then apply to that pair: one step of improvement over the best base at
+  each decision, at one set of futures per base. With one base, or the base repeated, the
+  decisions are the one-base planner's (tests/agents/test_planner.py).
+
 So the planner with base ``P`` is one step of policy improvement over ``P``: where it
 gains significantly over ``P``, ``P`` was not optimal (``make table`` and the sweeps report
 what this step adds, MODEL §3.6).
@@ -37,8 +44,11 @@ with batched forward passes.
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
+
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from ..sim import D, Site, SiteState, rng
 from ..sim.rollout import DecisionContext, advance
@@ -53,23 +63,48 @@ class PlannerPolicy(Policy):
     name = "planner"
 
     def __init__(self, base: Policy, rollouts: int = 32, horizon: int = 200,
-                 energy_value: float = 0.02, confidence: float = 1.5, seed: int = 0) -> None:
+                 energy_value: float = 0.02, confidence: float = 1.5, seed: int = 0,
+                 bases: Sequence[Policy] = ()) -> None:
         super().__init__()
-        if isinstance(base, PlannerPolicy):
+        if any(isinstance(b, PlannerPolicy) for b in (base, *bases)):
             raise ValueError("a planner's base policy cannot be a planner")
         self.base = base
+        if bases:  # registered only when there are any: a one-base planner's fingerprint stays
+            self.more_bases = nn.ModuleList(bases)
         self.encoding = base.encoding
         self.rollouts, self.horizon = int(rollouts), int(horizon)
         self.energy_value, self.confidence = float(energy_value), float(confidence)
         self.seed = int(seed)
-        self.stats = {"decisions": 0, "changed": 0}  # how often it left the base's action
+        # how often it left the reference base's action; with several bases, how often the
+        # reference was another than the first
+        self.stats = {"decisions": 0, "changed": 0, "other_base": 0}
+
+    @property
+    def bases(self) -> list[Policy]:
+        """The base policies: ``base`` first, then the parallel rollout's others."""
+        more = self._modules.get("more_bases")
+        return [self.base, *(more if more is not None else ())]
 
     def forward(self, obs: Tensor) -> Tensor:
         raise TypeError("the planner decides from the site's state, not from an observation: "
                         "call decide(site, state, ctx) (the evaluation protocol does)")
 
+    def _futures(self, site: Site, state: SiteState, ctx: DecisionContext, base: Policy,
+                 rep: Tensor, h: Tensor, k: int, n: int) -> tuple[Tensor, Tensor]:
+        """Score ``[2, k, n]`` and failed futures ``[2, n]`` of both actions of the deciding
+        sites ``rep`` under ``base``, on the futures ``h`` (the same for every base)."""
+        rs = state.select(rep)
+        rs.charge = torch.arange(2, device=rep.device).repeat_interleave(k * n).bool()
+        ev = advance(site, rs, h, rs.tick + self.horizon, base.decide, base.kernel_policy(),
+                     ctx.index[rep], ctx.fused)
+        real = rs.pos != site.park  # the vehicles a site of a distribution does not have
+        energy = (rs.soc.double() * real).sum(0)
+        score = (ev.trips.double() + self.energy_value * energy).view(2, k, n)
+        return score, ev.failed.view(2, k, n).sum(1)
+
     @torch.no_grad()
     def decide(self, site: Site, state: SiteState, ctx: DecisionContext) -> Tensor:
+        bases = self.bases
         act = self.base.decide(site, state, ctx)
         d = ctx.need.nonzero().squeeze(1)
         n, k = d.numel(), self.rollouts
@@ -77,23 +112,32 @@ class PlannerPolicy(Policy):
             return act
         dev = state.pos.device
         rep = d.repeat(2 * k)  # rollout (a, j, i) at (a * k + j) * n + i
-        rs = state.select(rep)
-        rs.charge = torch.arange(2, device=dev).repeat_interleave(k * n).bool()
         future = torch.arange(k, device=dev).repeat_interleave(n).repeat(2)
-        h = rng.hash_ints(self.seed, ctx.index[rep], rs.tick, future, rng.STREAM_PLANNER,
-                          device=dev)
-        ev = advance(site, rs, h, rs.tick + self.horizon, self.base.decide,
-                     self.base.kernel_policy(), ctx.index[rep], ctx.fused)
-        real = rs.pos != site.park  # the vehicles a site of a distribution does not have
-        energy = (rs.soc.double() * real).sum(0)
-        score = (ev.trips.double() + self.energy_value * energy).view(2, k, n)
-        fails = ev.failed.view(2, k, n).sum(1)
-        base_a = act[d].long()
-        diff = score[1] - score[0]  # paired over common futures: charge minus pass
-        gain = torch.where(base_a == 1, -diff, diff)  # the other action minus the base's
+        h = rng.hash_ints(self.seed, ctx.index[rep], state.tick[rep], future,
+                          rng.STREAM_PLANNER, device=dev)
+        runs = [self._futures(site, state, ctx, b, rep, h, k, n) for b in bases]
+        score = torch.stack([r[0] for r in runs])  # [m, 2, k, n]
+        fails = torch.stack([r[1] for r in runs])  # [m, 2, n]
+        own = torch.stack([act[d].long()] + [b.decide(site, state, ctx)[d].long()
+                                             for b in bases[1:]])  # [m, n]: each base's action
+        col = torch.arange(n, device=dev)
+
+        def best(a: Tensor) -> Tensor:
+            """For each site, the base under which action ``a`` ([m, n] or [n]) fails in
+            fewest futures, then scores highest on average (the first of equals)."""
+            a = a.expand(len(bases), n)
+            f = fails.gather(1, a.unsqueeze(1)).squeeze(1)
+            v = score.mean(2).gather(1, a.unsqueeze(1)).squeeze(1)
+            return torch.argmax(torch.where(f == f.min(0).values, v, -math.inf), dim=0)
+
+        ref = best(own) if len(bases) > 1 else torch.zeros(n, dtype=torch.long, device=dev)
+        base_a = own[ref, col]  # the reference: the best base's own action
+        other = 1 - base_a
+        alt = best(other) if len(bases) > 1 else ref
+        # paired over common futures: the other action (under its best base) minus the base's
+        gain = (score[alt, other, :, col] - score[ref, base_a, :, col]).T  # [k, n]
         se = gain.std(0) / k ** 0.5
-        f_base = torch.where(base_a == 1, fails[1], fails[0])
-        f_other = torch.where(base_a == 1, fails[0], fails[1])
+        f_base, f_other = fails[ref, base_a, col], fails[alt, other, col]
         switch = (f_other < f_base) | ((f_other == f_base)
                                        & (gain.mean(0) > self.confidence * se + 1e-9))
         # never turn a charge into a pass for a battery that might not last another lap and
@@ -102,14 +146,16 @@ class PlannerPolicy(Policy):
         switch &= ~((base_a == 1) & (soc_d < site.reserve_floor(state.params.select(d))))
         self.stats["decisions"] += n
         self.stats["changed"] += int(switch.sum())
+        self.stats["other_base"] += int((ref != 0).sum())
         out = act.clone()
-        out[d] = torch.where(switch, 1 - base_a, base_a).to(act.dtype)
+        out[d] = torch.where(switch, other, base_a).to(act.dtype)
         return out
 
     @classmethod
-    def from_config(cls, agent: PlannerAgentConfig, base: Policy) -> PlannerPolicy:
+    def from_config(cls, agent: PlannerAgentConfig, base: Policy,
+                    bases: Sequence[Policy] = ()) -> PlannerPolicy:
         return cls(base, agent.rollouts, agent.horizon, agent.energy_value, agent.confidence,
-                   agent.seed)
+                   agent.seed, bases)
 
 
 __all__ = ["BASELINE_BASES", "PlannerAgentConfig", "PlannerPolicy"]

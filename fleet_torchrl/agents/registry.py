@@ -142,8 +142,10 @@ def base_policy(name: str, device: str | torch.device = "cpu") -> Policy:
 
 
 def _planner(agent: PlannerAgentConfig) -> Policy:
-    assert agent.base in BASELINE_BASES or Path(agent.base).exists(), agent.base
-    return PlannerPolicy.from_config(agent, base_policy(agent.base))
+    for b in agent.all_bases():
+        assert b in BASELINE_BASES or Path(b).exists(), b
+    return PlannerPolicy.from_config(agent, base_policy(agent.base),
+                                     [base_policy(b) for b in agent.bases])
 
 
 register(AgentSpec("planner", PlannerAgentConfig, PlannerPolicy, make_policy=_planner))
@@ -164,7 +166,8 @@ def _imitation_learner(c: LearnerContext) -> Learner:
 
 register(AgentSpec("imitation", ImitationAgentConfig, ImitationPolicy,
                    make_learner=_imitation_learner,
-                   states=("partial", "partial_site", "all", "all_site")))
+                   states=("partial", "partial_site", "all", "all_site",
+                           "partial_all_site")))
 
 
 # ------------------------------------------------------------------------ lookups

@@ -62,7 +62,7 @@ from __future__ import annotations
 import hashlib
 import json
 import time
-from dataclasses import asdict, replace
+from dataclasses import replace
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -73,6 +73,7 @@ from ..agents.baselines import HeuristicPolicy
 from ..agents.config import BASELINE_BASES
 from ..agents.planner import PlannerPolicy
 from ..agents.policy_files import POLICY_FILE
+from ..agents.registry import base_policy
 from ..agents.search import SearchPolicy, cell_centres, clone_policy, threshold_start
 from ..config import Config, compose_config
 from ..evaluation import evaluate_policy, evaluate_with, gain_over, seed_interval
@@ -80,6 +81,7 @@ from ..evaluation.cache import EvalCache, policy_fingerprint, site_identity
 from ..sim import SiteConfig
 from ..store import load_policies, saved_policy_path
 from ..training import Trainer, training_fingerprint
+from ..training.checkpoint import without_neutral
 from ..utils.checks import ConfigError
 from ..utils.runinfo import file_sha256, read_json, run_info, to_jsonable, write_json
 from .improvement import improvement, paired_points
@@ -107,7 +109,7 @@ def policy_identity(cfg: Config, name: str) -> str:
     saved policy file the name stands for."""
     spec = AGENTS.get(name)
     if spec is not None and not spec.trainable:
-        return f"{name}:{digest(asdict(spec.schema()))}"
+        return f"{name}:{digest(without_neutral(spec.schema()))}"
     path = saved_policy_path(cfg.table.policies_dir, name)
     if not path.is_file():
         return f"{name}:missing"
@@ -129,7 +131,10 @@ def planner_config(cfg: Config) -> Any:
 
 
 def make_planner(cfg: Config, base: Policy) -> PlannerPolicy:
-    return PlannerPolicy.from_config(planner_config(cfg), base)
+    """The sweep's planner over ``base`` (and the parallel rollout's other bases, if its
+    settings name any)."""
+    agent = planner_config(cfg)
+    return PlannerPolicy.from_config(agent, base, [base_policy(b) for b in agent.bases])
 
 
 def eval_cache(cfg: Config) -> EvalCache:
@@ -256,7 +261,7 @@ def point_key(cfg: Config, site: SiteConfig, search_cfgs: dict[str, Config],
                         for row, runs in specialist_cfgs.items()},
         "guard": s.guard, "seeds": "every seed of the learned policies",
         "search_seeded": s.search_seeded, "pick": [s.pick_sims, s.pick_ticks],
-        "planner": asdict(planner_config(cfg)) if s.planner else None,
+        "planner": without_neutral(planner_config(cfg)) if s.planner else None,
         "planner_search": s.planner and s.planner_search,
         "distil": None if not (s.specialist and s.distil) else
         "the planner over planner_search's base, or over a row better than every planner; "
@@ -619,7 +624,8 @@ def one_step(cfg: Config, site: SiteConfig, groups: dict[str, dict[int | None, P
         if name in out:
             continue
         pol, planner = groups[name][seed], planner_config(cfg)
-        parts = ["improvement", policy_fingerprint(pol), asdict(planner), site_identity(site),
+        parts = ["improvement", policy_fingerprint(pol), without_neutral(planner),
+                 site_identity(site),
                  cfg.sweep.improve_sims, cfg.eval.ticks, cfg.eval.seed]
         imp = (cache or EvalCache(None)).get_or_compute(parts, partial(
             improvement, pol, results[(name, seed)], rule, site, cfg.sweep.improve_sims,

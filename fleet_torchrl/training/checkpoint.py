@@ -14,7 +14,7 @@ from dataclasses import asdict, fields, is_dataclass
 from pathlib import Path
 from typing import Any
 
-from ..utils.runinfo import to_jsonable
+from ..utils.runinfo import file_sha256, to_jsonable
 
 Config = Any  # the root ``Config``, duck-typed: this layer sits below it
 
@@ -35,15 +35,37 @@ def training_fingerprint(cfg: Config) -> dict[str, Any]:
     is left out while it is ``v``, the value that computes what the runs before it did: the
     saved runs keep their fingerprint (and stay reusable and resumable)."""
     train = {k: v for k, v in asdict(cfg.train).items() if k not in RUN_CONTROL}
-    agent: Any = cfg.agent
-    if is_dataclass(agent):
-        neutral = {f.name: f.metadata["neutral"] for f in fields(agent)
-                   if "neutral" in f.metadata}
-        agent = {k: v for k, v in to_jsonable(agent).items()
-                 if not (k in neutral and v == neutral[k])}
+    agent = without_neutral(cfg.agent)
+    expert = agent.get("expert") if isinstance(agent, dict) else None
+    if isinstance(expert, dict) and expert.get("bases"):  # a parallel rollout's teacher:
+        expert["bases"] = [_with_content(b) for b in expert["bases"]]  # its files' content
     return to_jsonable({"site": cfg.site, "state": cfg.state, "mdp": cfg.mdp,
                         "agent": agent, "network": cfg.network, "train": train,
                         "seed": cfg.seed})
+
+
+def _with_content(base: str) -> str:
+    """A teacher's base as ``<path>#<sha256 of its policy file>`` (a name as it is): a saved
+    run is reused, or resumed, only over the very policies it was taught over."""
+    p = Path(base)
+    p = p / "policy.pt" if p.is_dir() else p
+    return f"{base}#{file_sha256(p)[:16]}" if p.is_file() else base
+
+
+def without_neutral(obj: Any) -> Any:
+    """A config dataclass as a JSON-ready dict without the fields declared
+    ``metadata={"neutral": v}`` that hold ``v``, in nested dataclasses too (a teacher's
+    settings inside a learner's); anything else as :func:`to_jsonable` has it."""
+    if not (is_dataclass(obj) and not isinstance(obj, type)):
+        return to_jsonable(obj)
+    out = {}
+    for f in fields(obj):
+        v = getattr(obj, f.name)
+        plain = to_jsonable(v)
+        if "neutral" in f.metadata and plain == to_jsonable(f.metadata["neutral"]):
+            continue
+        out[f.name] = without_neutral(v) if is_dataclass(v) else plain
+    return out
 
 
 def fingerprint_diff(old: dict[str, Any], new: dict[str, Any], prefix: str = "") -> list[str]:

@@ -117,3 +117,52 @@ def test_config_builds_the_planner_and_rejects_bad_values(tmp_path):
         pol(torch.zeros(2, 3))
     with pytest.raises(ValueError, match="cannot be a planner"):
         PlannerPolicy(pol)
+
+
+# --------------------------------------------------------- several bases (parallel rollout)
+def test_a_repeated_base_decides_as_the_one_base():
+    """With its own base repeated in ``bases`` the futures, the reference and the other
+    action's best base are the first one's: the very decisions of the one-base planner."""
+    cfg = SiteConfig(n_vehicles=4)
+    one, two = planner(), planner(bases=[HeuristicPolicy()])
+    a, b = simulate(one, cfg, 16, 800, 0), simulate(two, cfg, 16, 800, 0)
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+    assert one.stats["decisions"] == two.stats["decisions"] and two.stats["other_base"] == 0
+
+
+def test_several_bases_start_from_the_better_one_where_it_is_better():
+    """Over the rule and the heuristic on a crowded site, the reference is often the
+    heuristic (the rule waits for the battery to run low), and the planner does at least as
+    well as the planner over the rule alone, with no more failures."""
+    cfg = SiteConfig(n_vehicles=5)
+    over_rule = planner(RulePolicy(), rollouts=8, horizon=150)
+    both = planner(RulePolicy(), rollouts=8, horizon=150, bases=[HeuristicPolicy()])
+    r1, r2 = simulate(over_rule, cfg, 24, 1500, 0), simulate(both, cfg, 24, 1500, 0)
+    assert 0 < both.stats["other_base"] < both.stats["decisions"]
+    assert r2["trips"].float().mean() >= r1["trips"].float().mean()
+    assert int(r2["failed"].sum()) <= int(r1["failed"].sum())
+    assert len(both.bases) == 2 and isinstance(both.bases[1], HeuristicPolicy)
+    assert [m for m in dict(over_rule.named_modules())] == ["", "base"]  # nothing registered
+
+
+def test_config_names_each_extra_base_and_keeps_old_fingerprints(tmp_path):
+    from fleet_torchrl.agents.config import ImitationAgentConfig
+    from fleet_torchrl.training.checkpoint import without_neutral
+
+    pol = make_policy(compose_config(["agent=planner", "agent.rollouts=4",
+                                      "agent.bases=[rule,heuristic]"]))
+    assert [type(b) for b in pol.bases] == [HeuristicPolicy, RulePolicy, HeuristicPolicy]
+    with pytest.raises(ConfigError, match=r"agent.bases\[1\]"):
+        PlannerAgentConfig(bases=["rule", str(tmp_path / "missing")]).validate()
+    with pytest.raises(ConfigError, match="agent.bases has 9 entries"):
+        PlannerAgentConfig(bases=["rule"] * 9).validate()
+    assert PlannerAgentConfig(bases=["rule"]).sites_per_simulation() == 1 + 2 * 32 * 2
+    # a setting added with its neutral value leaves saved runs' fingerprints as they were,
+    # in a teacher's settings nested in a learner's too
+    plain = without_neutral(ImitationAgentConfig())
+    assert "bases" not in plain["expert"] and "iterate_from" not in plain
+    multi = ImitationAgentConfig(expert=PlannerAgentConfig(bases=["rule"]))
+    assert without_neutral(multi)["expert"]["bases"] == ["rule"]
+    assert multi.run_suffix(None).startswith("_over_bases-")
+    assert ImitationAgentConfig().run_suffix(None) == ""
