@@ -110,7 +110,8 @@ def run(cfg: Config) -> dict:
             print(f"| {k} | {t[k]:.3f} | {t[k] / t['reference']:.3f} |")
         print(f"| fused: compile once | {t['compile']:.2f} | |")
     if a.training:
-        recipes = {n: r.overrides for n, r in cfg.recipes.items()}
+        recipes = {n: [*r.overrides, *saved_teacher_bases(cfg, n)]
+                   for n, r in cfg.recipes.items()}
         result["training"] = tr = bench_training(recipes, device=a.device)
         print("\n| learner (defaults) | sites | decisions/s | s per round |\n|---|---:|---:|---:|")
         for name, r in tr.items():
@@ -118,6 +119,19 @@ def run(cfg: Config) -> dict:
     if a.out:
         write_json(a.out, result)
     return result
+
+
+def saved_teacher_bases(cfg: Config, name: str) -> list[str]:
+    """A recipe's teacher bases (``Recipe.bases``: other recipes' policies) where the table
+    has saved them all; else none (its teacher then plans over its own base only)."""
+    from .experiments.table import recipe_seed_dir, teacher_bases
+
+    if all((recipe_seed_dir(cfg, b, cfg.seed) / "policy.pt").is_file()
+           for b in cfg.recipes[name].bases):
+        return teacher_bases(cfg, name)
+    print(f"[bench] {name}: its teacher's bases {cfg.recipes[name].bases} are not trained "
+          "yet (make policies): measured over its own base only", flush=True)
+    return []
 
 
 def preflight(cfg: Config, run_dir: str | None) -> None:

@@ -28,6 +28,10 @@ class Recipe:
 
     overrides: list[str] = field(default_factory=list)
     preview: list[str] = field(default_factory=list)
+    # an imitation recipe's teacher may plan over more bases than its own (the parallel
+    # rollout, agent.expert.bases): other recipes, each by its policy of the table's first
+    # training seed (the table trains them first); e.g. [dqn_all, search_crowded]
+    bases: list[str] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         validate_on_init(self)
@@ -44,6 +48,9 @@ class Recipe:
                         f"{path}.{kind}[{i}]={o!r} is invalid: allowed overrides key=value of "
                         f"the training run, not {', '.join(TABLE_SETS)} (the table sets them "
                         "per seed) nor Hydra's own")
+        if self.bases and "agent=imitation" not in self.overrides:
+            raise ConfigError(f"{path}.bases={self.bases!r} is invalid: allowed only in a "
+                              "recipe of agent=imitation (the bases its teacher plans over)")
         return self
 
     def training_overrides(self, preview: bool) -> list[str]:
@@ -71,6 +78,12 @@ def validate_recipes(recipes: dict[str, Recipe], reserved: tuple[str, ...],
             raise ConfigError(f"{path}.{name} is invalid: allowed a name of letters, digits, "
                               f"'_' and '-' other than {', '.join(reserved)}")
         recipe.validate(f"{path}.{name}")
+        for i, base in enumerate(recipe.bases):
+            if base not in recipes or base == name or recipes[base].bases:
+                raise ConfigError(
+                    f"{path}.{name}.bases[{i}]={base!r} is invalid: allowed a recipe other "
+                    f"than {name} whose teacher has no bases of its own: "
+                    f"{', '.join(n for n, r in recipes.items() if n != name and not r.bases)}")
     return recipes
 
 
@@ -113,6 +126,13 @@ class TableConfig:
     def names(self, recipes: dict[str, Recipe]) -> list[str]:
         """The recipes this table trains and evaluates, in the recipes' order."""
         return [n for n in recipes if self.only is None or n in self.only]
+
+    def training_names(self, recipes: dict[str, Recipe]) -> list[str]:
+        """The recipes this table trains: :meth:`names` and the recipes their teachers plan
+        over (``Recipe.bases``), in the recipes' order."""
+        names = self.names(recipes)
+        need = set(names).union(*(recipes[n].bases for n in names))
+        return [n for n in recipes if n in need]
 
 
 @dataclass

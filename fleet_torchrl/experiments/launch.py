@@ -180,13 +180,12 @@ class TableSweep:
         self.config = config
 
     def sweep(self, arguments: list[str]) -> list[Any]:
-        from hydra.core.plugins import Plugins
-        from hydra.core.utils import JobStatus
         from omegaconf import OmegaConf, open_dict, read_write
 
         from ..config import to_config, without_hydra
         from ..utils.cli import user_errors
         from .table import (
+            WAVES,
             check_outputs,
             evaluate_table,
             plan_jobs,
@@ -203,11 +202,28 @@ class TableSweep:
         n_jobs = OmegaConf.select(self.config, "hydra.launcher.n_jobs")
         one_at_a_time = n_jobs == 1 or OmegaConf.select(
             self.config, "hydra.launcher._target_", default="").endswith("BasicLauncher")
-        with user_errors():
-            jobs = plan_jobs(cfg, progress=cfg.train.progress and one_at_a_time)
+        returns = []
+        for wave in range(WAVES):  # recipes whose teachers plan over others' policies last
+            with user_errors():
+                jobs = plan_jobs(cfg, progress=cfg.train.progress and one_at_a_time,
+                                 wave=wave)
+            returns += self._run_jobs(jobs, runs_dir, n_jobs, wave, first_idx=len(returns))
+        if cfg.table.evaluate:
+            times = {(n, s): recorded_train_time(n, s, cfg)
+                     for n in cfg.table.names(cfg.recipes) for s in training_seeds(cfg)}
+            with user_errors():
+                evaluate_table(cfg, times)
+        return returns
+
+    def _run_jobs(self, jobs: list[Any], runs_dir: str, n_jobs: Any, wave: int,
+                  first_idx: int = 0) -> list[Any]:
+        """Launch one wave of the table's trainings; exit 1 if any failed."""
+        from hydra.core.plugins import Plugins
+        from hydra.core.utils import JobStatus
+
         progress = progress_callback(self.hydra_context)
         if progress is not None:
-            progress.set_total(len(jobs), name="table")
+            progress.set_total(len(jobs), name="table" if wave == 0 else "table, wave 2")
         returns = []
         if jobs:
             print(f"[table] {len(jobs)} trainings to run ({n_jobs or 1} at a time), "
@@ -216,7 +232,8 @@ class TableSweep:
                 hydra_context=self.hydra_context, task_function=self.task_function,
                 config=self.config)
             threads = _torch_threads()
-            returns = list(launcher.launch([j.overrides for j in jobs], initial_job_idx=0))
+            returns = list(launcher.launch([j.overrides for j in jobs],
+                                           initial_job_idx=first_idx))
             _torch_threads(threads)  # a job run in this process sets its own
         failed = [(j, r) for j, r in zip(jobs, returns, strict=True)
                   if r.status != JobStatus.COMPLETED]
@@ -227,11 +244,6 @@ class TableSweep:
                   "from its checkpoint", file=sys.stderr)
         if failed:
             sys.exit(1)
-        if cfg.table.evaluate:
-            times = {(n, s): recorded_train_time(n, s, cfg)
-                     for n in cfg.table.names(cfg.recipes) for s in training_seeds(cfg)}
-            with user_errors():
-                evaluate_table(cfg, times)
         return returns
 
 

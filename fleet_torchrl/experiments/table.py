@@ -125,11 +125,28 @@ def recipe_seed_dir(cfg: Config, name: str, seed: int) -> Path:
 
 def run_overrides(name: str, seed: int, cfg: Config) -> list[str]:
     """The overrides of training run ``name`` with ``seed`` (its policy goes to its seed dir;
-    the table's site is forwarded unless the recipe sets its own)."""
+    the table's site is forwarded unless the recipe sets its own; a teacher's bases are
+    other recipes' policies, :func:`teacher_bases`)."""
     out_dir = recipe_seed_dir(cfg, name, seed)
     site = [] if _sets_site(cfg, name) else site_overrides(cfg)
     return [*cfg.recipes[name].training_overrides(cfg.table.preview), *site,
-            f"train.out_dir={out_dir}", f"train.device={cfg.train.device}", f"seed={seed}"]
+            *teacher_bases(cfg, name), f"train.out_dir={out_dir}",
+            f"train.device={cfg.train.device}", f"seed={seed}"]
+
+
+def teacher_bases(cfg: Config, name: str) -> list[str]:
+    """The override that gives recipe ``name``'s teacher the policies of its ``bases``
+    recipes (each one's of the table's first training seed), none without bases."""
+    bases = cfg.recipes[name].bases
+    if not bases:
+        return []
+    paths = [str(recipe_seed_dir(cfg, b, cfg.seed) / POLICY_FILE) for b in bases]
+    for b, p in zip(bases, paths, strict=True):
+        if any(c in p for c in ",[]='\""):
+            raise ConfigError(f"table.policies_dir={cfg.table.policies_dir!r} is invalid for "
+                              f"recipe {name}'s teacher base {b}: its path {p!r} cannot be an "
+                              "override value (no , [ ] = or quotes)")
+    return [f"agent.expert.bases=[{','.join(paths)}]"]
 
 
 def reusable(out_dir: Path, run_cfg: Config) -> bool:
@@ -209,11 +226,18 @@ def check_outputs(cfg: Config) -> None:
         check_output("table.out", cfg.table.out, "dir")
 
 
-def plan_jobs(cfg: Config, progress: bool = False) -> list[TableJob]:
+WAVES = 2  # recipes whose teachers plan over other recipes' policies train after those
+
+
+def plan_jobs(cfg: Config, progress: bool = False, wave: int = 0) -> list[TableJob]:
     """The trainings the table needs, recipe by recipe and seed by seed (reused policies
-    left out); ``progress``: whether a job may show its progress bar (one job at a time)."""
+    left out); ``progress``: whether a job may show its progress bar (one job at a time).
+    Wave 0 holds the recipes without teacher bases, wave 1 the others: plan wave 1 once
+    wave 0 has run (its configs name wave 0's policy files, which must exist)."""
     check_forwardable(cfg)
-    jobs = [plan_training(name, seed, cfg, progress) for name in cfg.table.names(cfg.recipes)
+    names = [n for n in cfg.table.training_names(cfg.recipes)
+             if bool(cfg.recipes[n].bases) == bool(wave)]
+    jobs = [plan_training(name, seed, cfg, progress) for name in names
             for seed in training_seeds(cfg)]
     return [j for j in jobs if j is not None]
 

@@ -215,3 +215,65 @@ def test_a_table_on_another_site_trains_there_and_refuses_what_cannot_reach_its_
                        ("network.width=8", "network.width")):
         with pytest.raises(ConfigError, match=field):
             check_forwardable(compose_config([bad]))
+
+
+@pytest.mark.slow
+def test_a_teacher_over_other_recipes_trains_after_them_and_follows_their_files(tmp_path):
+    """A recipe whose teacher plans over other recipes' policies (``bases``) is trained in a
+    second wave, over their files (the table's first seed); its saved run is reused while
+    those files are the same, and trained again when one of them changes."""
+    tiny_student = ["agent=imitation", "agent.num_sites=8", "agent.steps_per_round=4",
+                    "agent.rounds=2", "agent.beta_rounds=1", "agent.hidden=8",
+                    "agent.updates_per_round=2", "agent.batch_size=8",
+                    "agent.expert.rollouts=2", "agent.expert.horizon=20", *TINY_TRAIN]
+    path = tmp_path / "conf" / "recipes" / "tiny.yaml"
+    path.parent.mkdir(parents=True)
+
+    def write(k: int) -> None:
+        path.write_text(yaml.safe_dump({"defaults": ["default", "_self_"],
+                                        "tabular": {"overrides": [*TINY_RECIPES["tabular"],
+                                                                  f"agent.k={k}"]},
+                                        "student": {"overrides": tiny_student,
+                                                    "bases": ["tabular"]}}))
+
+    write(40)
+    r = _table(tmp_path, "table.only=[student]", "table.seeds=2", "table.evaluate=false")
+    # the base's two seeds first, then the students over its seed 0
+    first, second = r.stdout.split("[table] 2 trainings to run")[1:3]
+    assert "train_tabular_seed0" in first and "train_student_seed" not in first
+    assert "train_student_seed1" in second
+    base = tmp_path / "out" / "pol" / "tabular" / "seed0" / "policy.pt"
+    summary = json.loads((tmp_path / "out" / "pol" / "student" / "seed1" /
+                          "train_summary.json").read_text())
+    (entry,) = summary["fingerprint"]["agent"]["expert"]["bases"]
+    assert entry.startswith("out/pol/tabular/seed0/policy.pt#")
+    r = _table(tmp_path, "table.only=[student]", "table.seeds=2", "table.evaluate=false")
+    assert r.stdout.count("[table] reusing") == 4 and "trainings to run" not in r.stdout
+    write(50)  # the base changes: so does what its students were taught
+    before = base.read_bytes()
+    r = _table(tmp_path, "table.only=[student]", "table.seeds=1", "table.evaluate=false")
+    assert base.read_bytes() != before
+    assert r.stdout.count("[table] 1 trainings to run") == 2
+
+
+def test_recipe_bases_are_checked():
+    from fleet_torchrl.experiments.config import Recipe, validate_recipes
+    from fleet_torchrl.utils.checks import ConfigError
+
+    ok = {"a": Recipe(["agent=tabular"]), "b": Recipe(["agent=imitation"], bases=["a"])}
+    assert validate_recipes(ok, ("rule",)) is ok
+    cfg = compose_config([])
+    cfg.recipes = ok
+    assert cfg.table.training_names(ok) == ["a", "b"]
+    cfg.table.only = ["b"]
+    assert cfg.table.names(ok) == ["b"] and cfg.table.training_names(ok) == ["a", "b"]
+    from fleet_torchrl.experiments.table import run_overrides
+
+    assert "agent.expert.bases=[results/policies/a/seed0/policy.pt]" in run_overrides("b", 1, cfg)
+    with pytest.raises(ConfigError, match=r"recipe.bases=\['a'\] is invalid: allowed only"):
+        Recipe(["agent=dqn"], bases=["a"])
+    for bad in (["b"], ["c"], ["x"]):
+        recipes = {**ok, "c": Recipe(["agent=imitation"], bases=["b"]),
+                   "x": Recipe(["agent=imitation"], bases=bad)}
+        with pytest.raises(ConfigError, match=r"recipes\.(c|x)\.bases\[0\]"):
+            validate_recipes(recipes, ("rule",))
