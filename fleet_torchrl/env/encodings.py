@@ -13,6 +13,7 @@ no node, so they change no feature.
 * ``partial_site`` (6): ``partial``, then the site's own ``N_V / N_N``, ``p_c`` and
   ``T_C / (T_C + N_N)`` (constant on one site; per site on a site distribution).
 * ``all_site`` (``N_N + 4``): ``all``, then the same three features of the site.
+* ``partial_all_site`` (``N_N + 7``): ``partial``, ``all``, then the site's three features.
 
 Add an encoding by subclassing :class:`Encoding`, registering it in :data:`ENCODINGS` (config
 validation reads this registry) and adding a ``fleet_torchrl/conf/state/<name>.yaml``.
@@ -128,6 +129,22 @@ class AllSite(Encoding):
         return torch.cat((ENCODINGS["all"](site, s), site_features(site, s)), dim=1)
 
 
+class PartialAllSite(Encoding):
+    """``partial``, ``all`` and the site's three features: every node, and the summaries a
+    network finds hard to compute from them (in ``all`` an empty node reads as an empty
+    battery, so the lowest charge of the others is no minimum over its entries). For a
+    generalist whose teacher reads every node (docs/TRAINING.md section 15)."""
+
+    name = "partial_all_site"
+
+    def size(self, site: Site) -> int:
+        return site.n_nodes + 7
+
+    def __call__(self, site: Site, s: SiteState) -> Tensor:
+        return torch.cat((ENCODINGS["partial"](site, s), ENCODINGS["all"](site, s),
+                          site_features(site, s)), dim=1)
+
+
 def site_features(site: Site, s: SiteState) -> Tensor:
     """Each site's ``N_V / N_N``, ``p_c`` and ``T_C / (T_C + N_N)``: ``[B, 3]`` float32."""
     n = float(site.n_nodes)
@@ -138,7 +155,8 @@ def site_features(site: Site, s: SiteState) -> Tensor:
 
 
 ENCODINGS: dict[str, Encoding] = {"partial": Partial(), "all": All(),
-                                  "partial_site": PartialSite(), "all_site": AllSite()}
+                                  "partial_site": PartialSite(), "all_site": AllSite(),
+                                  "partial_all_site": PartialAllSite()}
 
 
 def get_encoding(name: str) -> Encoding:

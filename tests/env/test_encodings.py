@@ -72,6 +72,20 @@ def test_all_site_is_all_plus_the_sites_own_parameters():
     assert p.n_vehicles.unique().numel() > 1  # (the sites differ: the features do)
 
 
+def test_partial_all_site_is_partial_then_all_then_the_site():
+    from fleet_torchrl.sim import SiteRanges
+
+    mixed = SiteConfig(ranges=SiteRanges(n_vehicles=[1, 5], p_c=[0.0, 0.9],
+                                         t_c=[10, 50])).validate()
+    site = Site(mixed)
+    s, _ = site.init_state(5, torch.arange(32))
+    enc = get_encoding("partial_all_site")
+    obs = enc(site, s)
+    assert obs.shape == (32, 3 + 16 + 3) and enc.size(site) == 22
+    assert torch.equal(obs[:, :3], get_encoding("partial")(site, s))
+    assert torch.equal(obs[:, 3:], get_encoding("all_site")(site, s))
+
+
 def test_env_specs_of_every_encoding_on_a_site_distribution():
     from torchrl.envs.utils import check_env_specs
 
@@ -80,7 +94,7 @@ def test_env_specs_of_every_encoding_on_a_site_distribution():
 
     mixed = SiteConfig(ranges=SiteRanges(n_vehicles=[1, 5], p_c=[0.0, 0.9],
                                          t_c=[10, 50])).validate()
-    for name in ("partial", "all", "partial_site", "all_site"):
+    for name in ("partial", "all", "partial_site", "all_site", "partial_all_site"):
         env = FleetChargingEnv(mixed, name, num_sites=8, seed=0)
         check_env_specs(env, seed=0)
 
