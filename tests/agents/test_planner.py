@@ -166,3 +166,24 @@ def test_config_names_each_extra_base_and_keeps_old_fingerprints(tmp_path):
     assert without_neutral(multi)["expert"]["bases"] == ["rule"]
     assert multi.run_suffix(None).startswith("_over_bases-")
     assert ImitationAgentConfig().run_suffix(None) == ""
+
+
+def test_the_reference_stays_the_first_base_unless_another_is_significantly_better():
+    """Picking the best mean among bases would follow noise: the first base stays the
+    reference unless another base's own action fails less or scores better by the
+    confidence bound of the paired difference (then the best such base)."""
+    p = planner(bases=[HeuristicPolicy(), HeuristicPolicy()], rollouts=4, confidence=1.5)
+    own = torch.tensor([[0, 1, 0], [1, 1, 0], [0, 0, 1]])  # [bases, sites]
+    score = torch.zeros(3, 2, 4, 3, dtype=torch.float64)  # [bases, action, future, site]
+    base0 = torch.tensor([10.0, 12.0, 11.0, 13.0], dtype=torch.float64)
+    score[0, 0, :, 0] = base0
+    score[1, 1, :, 0] = base0 + 2.0  # site 0: base 1 better in every future
+    score[2, 0, :, 0] = base0 + 1.0  # ... base 2 too, by less
+    score[0, 1, :, 1] = base0
+    score[1, 1, :, 1] = base0 + torch.tensor([3.0, -3.0, 2.0, -1.5], dtype=torch.float64)
+    score[2, 0, :, 1] = base0 + torch.tensor([0.6, -0.4, 0.5, -0.3], dtype=torch.float64)
+    # site 1: bases 1 and 2 better on average, within the noise
+    fails = torch.zeros(3, 2, 3, dtype=torch.long)
+    score[:, :, :, 2] = 5.0
+    fails[0, 0, 2] = 1  # site 2: the first base's action fails once, the others' never
+    assert p._reference(own, score, fails).tolist() == [1, 0, 1]
