@@ -9,7 +9,9 @@ The rollout planner (MODEL §3.6) decides from the whole site, not from these th
 so it has no map of its own: :func:`planner_maps` runs it (its defaults, base the heuristic)
 on each site of ``maps.planner_sites`` and draws, per cell of ``soc_D`` x ``TC`` and of
 ``soc_D`` x the lowest other soc, the share of charge decisions among the states it met
-(``results/policy_maps/planner_<site>.png``).
+(``results/policy_maps/planner_<site>.png``). A saved policy that reads more than these
+features (``all``, ``partial_all_site``: the generalist) gets the same kind of figure, on
+the configured site.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from typing import TYPE_CHECKING
 
 import torch
 
+from ..agents.base import Policy
 from ..agents.baselines import HeuristicPolicy
 from ..agents.planner import PlannerPolicy
 from ..config import compose_config
@@ -34,7 +37,10 @@ if TYPE_CHECKING:
 BINS = 20  # cells per axis of the planner's maps (5 % of soc, 1/20 of TC)
 
 
-def decision_shares(planner: PlannerPolicy, site, n_sims: int, ticks: int, seed: int
+MAPPED = ("partial", "partial_site")  # encodings a map over soc_D, TC and the others' soc draws
+
+
+def decision_shares(planner: Policy, site, n_sims: int, ticks: int, seed: int
                     ) -> dict[str, torch.Tensor]:
     """Run ``planner`` on the protocol's sites and count its decisions per cell: returns the
     share of charge per cell of ``soc_D`` x ``TC`` and ``soc_D`` x lowest other soc
@@ -50,8 +56,9 @@ def decision_shares(planner: PlannerPolicy, site, n_sims: int, ticks: int, seed:
         return a
 
     planner.decide = record  # (this instance only, for this run)
-    try:
-        simulate(planner, site, n_sims, ticks, seed)
+    try:  # the eager loop: every decision through decide (an in-kernel policy would skip it)
+        simulate(planner, site, n_sims, ticks, seed,
+                 fused=None if isinstance(planner, PlannerPolicy) else False)
     finally:
         del planner.decide
     obs, act = torch.cat(feats), torch.cat(acts).double()
@@ -88,7 +95,16 @@ def run(cfg: Config) -> list[Path]:
     paths = []
     for name, pol in load_policies(cfg, cfg.maps.policies).items():
         pol = pol.cpu()
-        fig = plot_policy_map(pol, title=f"{name}: charge (orange) / pass, by TC")
+        if pol.encoding in MAPPED:
+            fig = plot_policy_map(pol, title=f"{name}: charge (orange) / pass, by TC")
+        else:  # it reads more than the map's axes: what it did in the states it met
+            shares = decision_shares(pol, cfg.site, cfg.maps.planner_sims,
+                                     cfg.maps.planner_ticks, cfg.eval.seed)
+            fig = plot_decision_shares(
+                [(shares["tc"], "TC (charger's remaining time)", (0.0, 1.0)),
+                 (shares["others"], "lowest soc of the others", (0.0, 100.0))],
+                f"{name} ({pol.encoding} state) on site {cfg.site.name}: share of charge "
+                "decisions among the states it met")
         paths.append(save_figure(fig, out / f"{name}.png"))
         print(f"[policy-maps] {paths[-1]}")
     return paths + planner_maps(cfg)

@@ -45,3 +45,20 @@ def test_the_planners_decision_shares():
         assert seen.sum() > 10 and ((m[seen] >= 0) & (m[seen] <= 1)).all()
         low = m[:7][seen[:7]]  # soc_D below 35 %
         assert low.numel() and (low == 1).all()
+
+
+def test_a_policy_reading_every_node_gets_its_decision_shares():
+    """A network on the ``all`` state has no map over three features: its figure is the
+    share of charge among the states it met, every decision recorded (the eager loop)."""
+    import torch
+
+    from fleet_torchrl.agents.dqn import DQNPolicy, NetworkConfig
+    from fleet_torchrl.experiments.policy_maps import MAPPED, decision_shares
+    from fleet_torchrl.sim import SiteConfig
+
+    torch.manual_seed(0)
+    pol = DQNPolicy(NetworkConfig(width=8, depth=1), 16, "all")
+    assert pol.encoding not in MAPPED
+    shares = decision_shares(pol, SiteConfig(), 8, 400, 0)
+    seen = shares["tc"][~shares["tc"].isnan()]
+    assert seen.numel() > 3 and bool(((seen >= 0) & (seen <= 1)).all())
