@@ -192,6 +192,10 @@ def validate(cfg: Config) -> Config:
 def check_point_recipe(path: str, name: str, recipe: Recipe) -> None:
     """A recipe a sweep trains on the point's own site (a specialist, the distilled
     planner) must not choose a site itself: the point's site would replace it unseen."""
+    if recipe.bases:
+        raise ConfigError(f"{path}={name!r} is invalid: its teacher plans over the table's "
+                          f"policies of {', '.join(recipe.bases)} (recipe bases), which a "
+                          "sweep point does not train; allowed a recipe without bases")
     o = recipe.site_override()
     if o is not None:
         raise ConfigError(f"{path}={name!r} is invalid: the recipe sets {o!r}, and a sweep "

@@ -272,6 +272,11 @@ def test_recipe_bases_are_checked():
     assert "agent.expert.bases=[results/policies/a/seed0/policy.pt]" in run_overrides("b", 1, cfg)
     with pytest.raises(ConfigError, match=r"recipe.bases=\['a'\] is invalid: allowed only"):
         Recipe(["agent=dqn"], bases=["a"])
+    from fleet_torchrl.config import check_point_recipe
+
+    with pytest.raises(ConfigError, match=r"sweep.distil='b' is invalid: its teacher plans"):
+        check_point_recipe("sweep.distil", "b", ok["b"])
+    check_point_recipe("sweep.distil", "a", ok["a"])  # no bases, no site: fine
     for bad in (["b"], ["c"], ["x"]):
         recipes = {**ok, "c": Recipe(["agent=imitation"], bases=["b"]),
                    "x": Recipe(["agent=imitation"], bases=bad)}
