@@ -205,7 +205,12 @@ def test_a_table_on_another_site_trains_there_and_refuses_what_cannot_reach_its_
     assert run.site.n_vehicles == 5
     # the generalist trains on its own site distribution whatever the table's site
     assert recipe_folder(five, "generalist") == "generalist"
-    assert compose_config(run_overrides("generalist", 0, five)).site.randomized
+    assert compose_config(run_overrides("generalist_dqn", 0, five)).site.randomized
+    # ... and its teacher plans over the policies this table trains (dqn_all on its site;
+    # search_crowded on its own)
+    assert ("agent.expert.bases=[results/policies/dqn_all_five_vehicles/seed0/policy.pt,"
+            "results/policies/search_crowded/seed0/policy.pt]") in run_overrides(
+                "generalist", 0, five)
     # a field changed on top of a preset is forwarded too, under a name with its hash
     tweak = compose_config(["site=five_vehicles", "site.p_c=0.5"])
     assert site_overrides(tweak) == ["site=five_vehicles", "site.p_c=0.5"]
