@@ -124,9 +124,10 @@ def run(cfg: Config) -> dict:
 def saved_teacher_bases(cfg: Config, name: str) -> list[str]:
     """A recipe's teacher bases (``Recipe.bases``: other recipes' policies) where the table
     has saved them all; else none (its teacher then plans over its own base only)."""
+    from .agents.policy_files import POLICY_FILE
     from .experiments.table import recipe_seed_dir, teacher_bases
 
-    if all((recipe_seed_dir(cfg, b, cfg.seed) / "policy.pt").is_file()
+    if all((recipe_seed_dir(cfg, b, cfg.seed) / POLICY_FILE).is_file()
            for b in cfg.recipes[name].bases):
         return teacher_bases(cfg, name)
     print(f"[bench] {name}: its teacher's bases {cfg.recipes[name].bases} are not trained "

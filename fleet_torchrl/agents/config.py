@@ -362,10 +362,10 @@ class PlannerAgentConfig(AgentConfig):
     energy_value: float = 0.02  # trips per unit of soc left in the fleet at the horizon
     confidence: float = 1.5  # standard errors by which the other action must score better
     seed: int = 0  # the planner's own random streams
-    # more base policies (parallel rollout): each decision's futures run under every base, the
-    # planner starts from the base whose own action scores best there and takes the other
-    # action where some base scores it significantly better; [] = the one base (neutral: runs
-    # saved before it keep their training fingerprint)
+    # more base policies (parallel rollout): each decision's futures run under every base; the
+    # planner starts from `base` unless another base's own action is significantly better
+    # there, and takes the other action where some base scores it significantly better;
+    # [] = the one base (neutral: runs saved before it keep their training fingerprint)
     bases: list[str] = field(default_factory=list, metadata={"neutral": []})
 
     def validate(self, cfg: Any = None, path: str = "agent") -> PlannerAgentConfig:

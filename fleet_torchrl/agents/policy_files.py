@@ -25,7 +25,7 @@ from typing import Any
 
 import torch
 
-from ..utils.runinfo import atomic_write
+from ..utils.runinfo import atomic_write, file_sha256
 from .base import Policy
 
 FORMAT = "fleet_torchrl.policy/2"
@@ -94,6 +94,14 @@ def save_policy(path: str | Path, policy: Policy, kind: str,
     data = policy_bytes(policy, kind, meta)
     out = atomic_write(path, lambda f: f.write(data), mode="wb")
     return out, hashlib.sha256(data).hexdigest()
+
+
+def policy_file_sha256(path: str | Path | None) -> str | None:
+    """The SHA-256 of the policy file ``path`` names (``policy.pt`` or a folder holding
+    one); None for anything else (a baseline's name, nothing)."""
+    p = Path(path or "")
+    p = p / POLICY_FILE if p.is_dir() else p
+    return file_sha256(p) if p.is_file() else None
 
 
 def read_policy_file(path: str | Path) -> tuple[Path, dict[str, Any]]:

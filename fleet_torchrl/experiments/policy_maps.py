@@ -29,15 +29,17 @@ from ..env.encodings import get_encoding
 from ..evaluation import simulate
 from ..store import load_policies, site_preset
 from ..utils.checks import ConfigError
-from ..utils.plotting import plot_decision_shares, plot_policy_map, save_figure
+from ..utils.plotting import (
+    MAP_ENCODINGS,
+    plot_decision_shares,
+    plot_policy_map,
+    save_figure,
+)
 
 if TYPE_CHECKING:
     from ..config import Config
 
 BINS = 20  # cells per axis of the planner's maps (5 % of soc, 1/20 of TC)
-
-
-MAPPED = ("partial", "partial_site")  # encodings a map over soc_D, TC and the others' soc draws
 
 
 def decision_shares(planner: Policy, site, n_sims: int, ticks: int, seed: int
@@ -72,6 +74,13 @@ def decision_shares(planner: Policy, site, n_sims: int, ticks: int, seed: int
     return out
 
 
+def shares_figure(shares: dict[str, torch.Tensor], title: str):
+    """The two panels of :func:`decision_shares` (by ``TC``, by the others' lowest soc)."""
+    return plot_decision_shares(
+        [(shares["tc"], "TC (charger's remaining time)", (0.0, 1.0)),
+         (shares["others"], "lowest soc of the others", (0.0, 100.0))], title)
+
+
 def planner_maps(cfg: Config) -> list[Path]:
     out, paths = Path(cfg.maps.out), []
     agent = compose_config(["agent=planner"]).agent
@@ -81,10 +90,8 @@ def planner_maps(cfg: Config) -> list[Path]:
             raise ConfigError(f"maps.planner_sites: {name!r} is not a site preset")
         shares = decision_shares(PlannerPolicy.from_config(agent, HeuristicPolicy()), site,
                                  cfg.maps.planner_sims, cfg.maps.planner_ticks, cfg.eval.seed)
-        fig = plot_decision_shares(
-            [(shares["tc"], "TC (charger's remaining time)", (0.0, 1.0)),
-             (shares["others"], "lowest soc of the others", (0.0, 100.0))],
-            f"planner on site {name}: share of charge decisions among the states it met")
+        fig = shares_figure(shares, f"planner on site {name}: share of charge decisions "
+                                    "among the states it met")
         paths.append(save_figure(fig, out / f"planner_{name}.png"))
         print(f"[policy-maps] {paths[-1]}")
     return paths
@@ -95,16 +102,14 @@ def run(cfg: Config) -> list[Path]:
     paths = []
     for name, pol in load_policies(cfg, cfg.maps.policies).items():
         pol = pol.cpu()
-        if pol.encoding in MAPPED:
+        if pol.encoding in MAP_ENCODINGS:
             fig = plot_policy_map(pol, title=f"{name}: charge (orange) / pass, by TC")
         else:  # it reads more than the map's axes: what it did in the states it met
             shares = decision_shares(pol, cfg.site, cfg.maps.planner_sims,
                                      cfg.maps.planner_ticks, cfg.eval.seed)
-            fig = plot_decision_shares(
-                [(shares["tc"], "TC (charger's remaining time)", (0.0, 1.0)),
-                 (shares["others"], "lowest soc of the others", (0.0, 100.0))],
-                f"{name} ({pol.encoding} state) on site {cfg.site.name}: share of charge "
-                "decisions among the states it met")
+            fig = shares_figure(shares, f"{name} ({pol.encoding} state) on site "
+                                        f"{cfg.site.name}: share of charge decisions among "
+                                        "the states it met")
         paths.append(save_figure(fig, out / f"{name}.png"))
         print(f"[policy-maps] {paths[-1]}")
     return paths + planner_maps(cfg)

@@ -72,7 +72,7 @@ from ..agents.base import GuardedPolicy, Policy
 from ..agents.baselines import HeuristicPolicy
 from ..agents.config import BASELINE_BASES
 from ..agents.planner import PlannerPolicy
-from ..agents.policy_files import POLICY_FILE
+from ..agents.policy_files import POLICY_FILE, policy_file_sha256
 from ..agents.registry import base_policy
 from ..agents.search import SearchPolicy, cell_centres, clone_policy, threshold_start
 from ..config import Config, compose_config
@@ -205,8 +205,8 @@ def search_start(cfg: Config, run_cfg: Config, policies: dict[str, Policy],
 def point_training(cfg: Config, run_cfg: Config, label: str) -> tuple[Policy, dict[str, Any]]:
     """A policy trained on the point's site with ``run_cfg`` (a search or a specialist),
     reused when its settings (and start) match, and its summary."""
-    start: Any = _policy_file_hash(getattr(run_cfg.agent, "init", None))
-    teacher = _policy_file_hash(getattr(getattr(run_cfg.agent, "expert", None), "base", None))
+    start: Any = policy_file_sha256(getattr(run_cfg.agent, "init", None))
+    teacher = policy_file_sha256(getattr(getattr(run_cfg.agent, "expert", None), "base", None))
     if teacher is not None:  # a teacher over a saved policy: its content, not just its path
         start = [start, teacher]
     out = Path(cfg.sweep.search_dir) / label / digest([training_fingerprint(run_cfg), start])
@@ -217,14 +217,6 @@ def point_training(cfg: Config, run_cfg: Config, label: str) -> tuple[Policy, di
     else:
         print(f"[sweep] {label}: reusing {out}", flush=True)
     return load_policy_file(out), read_json(out / "train_summary.json")
-
-
-def _policy_file_hash(path: str | None) -> str | None:
-    """The SHA-256 of the policy file ``path`` names (a file, or a folder holding one); None
-    for anything else (a baseline's name, nothing)."""
-    p = Path(path or "")
-    p = p / POLICY_FILE if p.is_dir() else p
-    return file_sha256(p) if p.is_file() else None
 
 
 def specialist_config(cfg: Config, site: SiteConfig, recipe: str, seed: int,

@@ -14,7 +14,8 @@ from dataclasses import asdict, fields, is_dataclass
 from pathlib import Path
 from typing import Any
 
-from ..utils.runinfo import file_sha256, to_jsonable
+from ..agents.policy_files import policy_file_sha256
+from ..utils.runinfo import to_jsonable
 
 Config = Any  # the root ``Config``, duck-typed: this layer sits below it
 
@@ -47,9 +48,8 @@ def training_fingerprint(cfg: Config) -> dict[str, Any]:
 def _with_content(base: str) -> str:
     """A teacher's base as ``<path>#<sha256 of its policy file>`` (a name as it is): a saved
     run is reused, or resumed, only over the very policies it was taught over."""
-    p = Path(base)
-    p = p / "policy.pt" if p.is_dir() else p
-    return f"{base}#{file_sha256(p)[:16]}" if p.is_file() else base
+    sha = policy_file_sha256(base)
+    return base if sha is None else f"{base}#{sha[:16]}"
 
 
 def without_neutral(obj: Any) -> Any:

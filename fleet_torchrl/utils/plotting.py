@@ -24,12 +24,15 @@ _CMAP = ListedColormap(["#d9e6f2", "#d95f02"])  # pass, charge
 DEFAULT_SITE_FEATURES = (3 / 15, 0.8, 30 / 45)
 
 
+MAP_ENCODINGS = ("partial", "partial_site")  # the states a map over its three axes can draw
+
+
 @torch.no_grad()
 def policy_map(policy: Policy, tcs: tuple[float, ...], n: int = 101,
                site_features: tuple[float, ...] = DEFAULT_SITE_FEATURES) -> torch.Tensor:
     """Actions on a grid of ``partial`` states: ``[len(tcs), n (soc_D), n (lowest soc)]``
     (a ``partial_site`` policy's with ``site_features`` appended: the default site's)."""
-    if policy.encoding not in ("partial", "partial_site"):
+    if policy.encoding not in MAP_ENCODINGS:
         raise ValueError(f"policy maps need the partial encoding, {policy.name} uses "
                          f"{policy.encoding}")
     extra = site_features if policy.encoding == "partial_site" else ()

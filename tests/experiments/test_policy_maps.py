@@ -53,12 +53,13 @@ def test_a_policy_reading_every_node_gets_its_decision_shares():
     import torch
 
     from fleet_torchrl.agents.dqn import DQNPolicy, NetworkConfig
-    from fleet_torchrl.experiments.policy_maps import MAPPED, decision_shares
+    from fleet_torchrl.experiments.policy_maps import decision_shares
     from fleet_torchrl.sim import SiteConfig
+    from fleet_torchrl.utils.plotting import MAP_ENCODINGS
 
     torch.manual_seed(0)
     pol = DQNPolicy(NetworkConfig(width=8, depth=1), 16, "all")
-    assert pol.encoding not in MAPPED
+    assert pol.encoding not in MAP_ENCODINGS
     shares = decision_shares(pol, SiteConfig(), 8, 400, 0)
     seen = shares["tc"][~shares["tc"].isnan()]
     assert seen.numel() > 3 and bool(((seen >= 0) & (seen <= 1)).all())
