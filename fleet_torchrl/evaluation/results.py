@@ -99,6 +99,20 @@ def worst_stratum_gain(result: dict[str, Any], baseline: dict[str, Any],
     return worst
 
 
+def strata_below(result: dict[str, Any], baseline: dict[str, Any],
+                 strata: dict[str, Tensor], z: float = 1.96) -> list[str]:
+    """The strata in which ``result`` is significantly below ``baseline``: the upper end of
+    the paired difference's ``z``-interval (per simulation's trips, same sites) under 0."""
+    a = torch.tensor(result["records"]["trips"], dtype=torch.float64)
+    b = torch.tensor(baseline["records"]["trips"], dtype=torch.float64)
+    out = []
+    for name, m in strata.items():
+        d = (a - b)[m]
+        if d.numel() >= 2 and float(d.mean() + z * d.std() / d.numel() ** 0.5) < 0:
+            out.append(name)
+    return out
+
+
 # ------------------------------------------------------------------------- comparison
 def gain_over(result: dict[str, Any], baseline: dict[str, Any]) -> dict[str, Any]:
     """Trips gain of ``result`` over ``baseline`` in percent of the baseline's mean.

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 from ..utils.checks import check_choice, check_device, check_range, validate_on_init
 
-SELECTIONS = ("objective", "trips", "robust")
+SELECTIONS = ("objective", "trips", "robust", "guarded")
 
 
 @dataclass
@@ -19,6 +19,7 @@ class TrainConfig:
     eval_ticks: int = 3000
     eval_seed: int = 1_000_003  # distinct from the final evaluation's seed
     select: str = "objective"  # snapshot selection after failures: objective | trips | robust
+                               # | guarded
     patience: int = 0  # evaluations without improvement before stopping (0 = never stop)
     checkpoint_every: int = 5  # rounds between checkpoints
     out_dir: str | None = None  # best policy goes here; default results/policies/<run name>

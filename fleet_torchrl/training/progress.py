@@ -2,14 +2,19 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
 from ..env.objectives import OBJECTIVES
 
+# what a guarded selection takes off a snapshot below the heuristic somewhere: more than any
+# objective's score spans, so such a snapshot ranks below every one that is not
+GUARD_PENALTY = 1e9
+
 
 def selection_score(select: str, objective: str, res: dict[str, Any],
-                    worst_gain: float | None = None) -> float:
+                    worst_gain: float | None = None, below: Sequence[str] = ()) -> float:
     """What ranks two evaluations with the same failure rate (``train.select``): the mean
     trips (``trips``), or the score of the objective being learned (``objective``, the
     agent's :meth:`~fleet_torchrl.agents.base.AgentConfig.objective`): the thesis reward
@@ -17,7 +22,11 @@ def selection_score(select: str, objective: str, res: dict[str, Any],
     count trips, so more of them win. ``robust``: the worst paired gain over the heuristic
     in any stratum of the selection set (``worst_gain``, see
     :func:`~fleet_torchrl.evaluation.worst_stratum_gain`), so a snapshot that loses to the
-    heuristic anywhere ranks below one that never does."""
+    heuristic anywhere ranks below one that never does. ``guarded``: the ``objective`` score,
+    but a snapshot significantly below the heuristic in some stratum (``below``, their names,
+    :func:`~fleet_torchrl.evaluation.strata_below`) ranks below every one that is not."""
+    if select == "guarded":
+        return selection_score("objective", objective, res) - (GUARD_PENALTY if below else 0.0)
     if select == "robust":
         assert worst_gain is not None, "select=robust needs the worst stratum gain"
         return float(worst_gain)

@@ -52,7 +52,7 @@ from ..agents.baselines import HeuristicPolicy, RulePolicy
 from ..agents.policy_files import POLICY_FILE, first_non_finite, save_policy
 from ..agents.registry import LearnerContext, get_agent
 from ..env import FleetChargingEnv
-from ..evaluation import evaluate_policy, gain_over, site_strata, worst_stratum_gain
+from ..evaluation import evaluate_policy, gain_over, site_strata, strata_below, worst_stratum_gain
 from ..store import default_policy_dir, policy_name
 from ..utils.monitor import Monitor
 from ..utils.numerics import flush_denormals
@@ -198,7 +198,7 @@ class Trainer:
         self.eval_args = dict(site_cfg=self.cfg.site, n_sims=t.eval_sims, ticks=t.eval_ticks,
                               seed=t.eval_seed, device=t.device)
         self.rule_eval = evaluate_policy(RulePolicy(), **self.eval_args)
-        if self.cfg.train.select == "robust":  # the reference every stratum is judged by
+        if self.cfg.train.select in ("robust", "guarded"):  # every stratum's reference
             self.heuristic_eval = evaluate_policy(HeuristicPolicy(), **self.eval_args)
             self.strata = site_strata(self.cfg.site, t.eval_sims, t.eval_seed)
 
@@ -288,7 +288,14 @@ class Trainer:
             self.monitor.scalars({"eval/worst_stratum_gain_vs_heuristic_pct": worst}, step)
             log.info("round %d: worst stratum %s, %+.3f %% vs the heuristic", self.progress.round,
                      where, worst)
-        score = selection_score(c.train.select, c.agent.objective(c.mdp), res, worst)
+        below: list[str] = []
+        if c.train.select == "guarded":
+            below = strata_below(res, self.heuristic_eval, self.strata)
+            self.monitor.scalars({"eval/strata_below_heuristic": len(below)}, step)
+            if below:
+                log.info("round %d: significantly below the heuristic in %s (ranks below "
+                         "every snapshot that is not)", p.round, ", ".join(below))
+        score = selection_score(c.train.select, c.agent.objective(c.mdp), res, worst, below)
         improved = p.is_better(res["failure_rate"], score)
         if improved:
             p.best, p.best_round, p.evals_since_best = ((res["failure_rate"], score),

@@ -150,6 +150,31 @@ def test_strata_of_a_site_distribution_and_the_worst_stratum_gain():
     assert where == "n_vehicles=4" and g == pytest.approx(-1.0)
 
 
+def test_strata_below_flags_only_a_significant_loss_and_guarded_selection_ranks_it_last():
+    """``strata_below``: where the paired difference's 95 % interval lies under 0; a loss
+    within the noise is not flagged. ``train.select=guarded`` ranks a flagged snapshot below
+    every unflagged one, whatever their objective scores."""
+    from fleet_torchrl.evaluation import site_strata, strata_below
+    from fleet_torchrl.sim import Site, SiteRanges
+    from fleet_torchrl.training.progress import selection_score
+
+    cfg = SiteConfig(ranges=SiteRanges(n_vehicles=[2, 4])).validate()
+    strata = site_strata(cfg, 300, 1)
+    on_4 = Site(cfg).draw_params(1, torch.arange(300)).n_vehicles == 4
+    noise = torch.where(torch.arange(300) % 2 == 0, 3, -3)
+    base = {"records": {"trips": (100 + noise).tolist()}}
+    loses_on_4 = {"records": {"trips": (100 + noise - 2 * on_4).tolist()}}
+    noisy = {"records": {"trips": (100 + 2 * noise.roll(1)).tolist()}}  # mean 0, spread 6
+    assert strata_below(base, base, strata) == []
+    assert strata_below(loses_on_4, base, strata) == ["n_vehicles=4"]
+    assert strata_below(noisy, base, strata) == []
+    res = {"trips_mean": 400.0, "queue_mean": 10.0}
+    flagged = selection_score("guarded", "trips", {**res, "trips_mean": 500.0},
+                              below=["n_vehicles=4"])
+    assert selection_score("guarded", "trips", res) == selection_score("objective", "trips", res)
+    assert flagged < selection_score("guarded", "trips", res)
+
+
 # two-sided 95 % quantiles of Student's t from published tables (not from scipy)
 T_TABLE = {1: 12.7062047, 7: 2.3646243, 10: 2.2281389, 11: 2.2009852, 29: 2.0452296,
            999: 1.9623414}

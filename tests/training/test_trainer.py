@@ -220,6 +220,20 @@ def test_robust_selection_keeps_a_snapshot_that_never_loses_to_the_heuristic(tmp
     assert out["best"]["trips"] == pytest.approx(tr.heuristic_eval["trips_mean"])
 
 
+def test_guarded_selection_judges_every_stratum_against_the_heuristic(tmp_path):
+    """``train.select=guarded`` evaluates the heuristic on the selection set once and logs,
+    per evaluation, in how many strata the snapshot is significantly below it: the heuristic
+    itself (an unreachable anchor margin) is below it in none."""
+    from fleet_torchrl.evaluation import site_strata
+
+    tr, out = _train([*TINY_DQN, "site=randomized", "agent.anchor=heuristic",
+                      "agent.anchor_margin=1e9", "train.select=guarded"], tmp_path)
+    assert set(tr.strata) == set(site_strata(tr.cfg.site, 16, tr.cfg.train.eval_seed))
+    assert out["best"]["trips"] == pytest.approx(tr.heuristic_eval["trips_mean"])
+    assert tr.progress.best[1] > -1e6  # no snapshot took the guard's penalty
+    assert "eval/strata_below_heuristic" in _scalar_tags(tmp_path)
+
+
 def _scalar_tags(run_dir) -> set[str]:
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
