@@ -85,12 +85,17 @@ def site_strata(site_cfg: Any, n_sims: int, seed: int) -> dict[str, Tensor]:
     return out
 
 
+def paired_trips(result: dict[str, Any], baseline: dict[str, Any]) -> tuple[Tensor, Tensor]:
+    """The per-simulation trips of two results on the same sites (float64, paired by index)."""
+    return (torch.tensor(result["records"]["trips"], dtype=torch.float64),
+            torch.tensor(baseline["records"]["trips"], dtype=torch.float64))
+
+
 def worst_stratum_gain(result: dict[str, Any], baseline: dict[str, Any],
                        strata: dict[str, Tensor]) -> tuple[float, str]:
     """The lowest paired trips gain (%) of ``result`` over ``baseline`` in any stratum (each
     stratum's total trips over the baseline's), and that stratum's name."""
-    a = torch.tensor(result["records"]["trips"], dtype=torch.float64)
-    b = torch.tensor(baseline["records"]["trips"], dtype=torch.float64)
+    a, b = paired_trips(result, baseline)
     worst = (math.inf, "")
     for name, m in strata.items():
         if bool(m.any()):
@@ -103,8 +108,7 @@ def strata_below(result: dict[str, Any], baseline: dict[str, Any],
                  strata: dict[str, Tensor], z: float = 1.96) -> list[str]:
     """The strata in which ``result`` is significantly below ``baseline``: the upper end of
     the paired difference's ``z``-interval (per simulation's trips, same sites) under 0."""
-    a = torch.tensor(result["records"]["trips"], dtype=torch.float64)
-    b = torch.tensor(baseline["records"]["trips"], dtype=torch.float64)
+    a, b = paired_trips(result, baseline)
     out = []
     for name, m in strata.items():
         d = (a - b)[m]
@@ -130,8 +134,7 @@ def gain_over(result: dict[str, Any], baseline: dict[str, Any]) -> dict[str, Any
             detail = "" if key == "site" else f" ({result.get(key)} vs {baseline.get(key)})"
             raise ValueError(f"cannot pair {result.get('policy')} with {baseline.get('policy')}: "
                              f"{key} differs{detail}")
-    a = torch.tensor(result["records"]["trips"], dtype=torch.float64)
-    b = torch.tensor(baseline["records"]["trips"], dtype=torch.float64)
+    a, b = paired_trips(result, baseline)
     base_mean = float(b.mean())
     if base_mean <= 0:
         raise ValueError(f"cannot express a gain over {baseline.get('policy')}: it completed no "
