@@ -65,14 +65,22 @@ def saved_policies(tmp_path):
 def command(monkeypatch):
     """Run a command's entry point (``fleet_torchrl.<command>.main``, what its console script
     calls) in this process with ``args`` as its command line; returns its exit code."""
+    import logging
     import sys
 
     def run(main, *args: str) -> int:
         monkeypatch.setattr(sys, "argv", ["fleet-command", *args])
+        # Hydra's job logging gives the root logger handlers on this test's (captured) stderr;
+        # left there, a later test's log lines go to a closed stream
+        root = logging.getLogger()
+        handlers, level = list(root.handlers), root.level
         try:
             main()
         except SystemExit as e:
             return int(e.code or 0)
+        finally:
+            root.handlers[:] = handlers
+            root.setLevel(level)
         return 0
 
     return run
