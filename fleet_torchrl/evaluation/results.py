@@ -105,14 +105,16 @@ def worst_stratum_gain(result: dict[str, Any], baseline: dict[str, Any],
 
 
 def strata_below(result: dict[str, Any], baseline: dict[str, Any],
-                 strata: dict[str, Tensor], z: float = 1.96) -> list[str]:
+                 strata: dict[str, Tensor]) -> list[str]:
     """The strata in which ``result`` is significantly below ``baseline``: the upper end of
-    the paired difference's ``z``-interval (per simulation's trips, same sites) under 0."""
+    the paired difference's 95 % interval (per simulation's trips, same sites; Student's t,
+    as :func:`gain_over`) under 0."""
     a, b = paired_trips(result, baseline)
     out = []
     for name, m in strata.items():
         d = (a - b)[m]
-        if d.numel() >= 2 and float(d.mean() + z * d.std() / d.numel() ** 0.5) < 0:
+        n = d.numel()
+        if n >= 2 and float(d.mean() + t95(n - 1) * d.std() / n ** 0.5) < 0:
             out.append(name)
     return out
 
