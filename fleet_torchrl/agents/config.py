@@ -122,6 +122,7 @@ class TabularAgentConfig(AgentConfig):
                    ** (round_idx / self.eps_decay_episodes))
 
 LR_DECAYS = ("none", "cosine", "linear")
+LABEL_WEIGHTS = ("uniform", "gap")  # imitation: how a label weighs in the loss
 ANCHORS = ("none", "heuristic")
 ANCHOR_STATES = ("partial", "partial_site")  # encodings whose features 0-2 the heuristic reads
 
@@ -427,6 +428,12 @@ class ImitationAgentConfig(AgentConfig):
     weight_decay: float = 0.0  # Adam L2
     updates_per_round: int = 200  # gradient steps after each round
     batch_size: int = 512  # pairs per gradient step
+    # the weight of a label in the loss: "uniform" (1 each) or "gap" (the planner's estimated
+    # difference between the two actions' scores, capped at gap_cap: cost-sensitive
+    # imitation, AggreVaTe-style); neutral, so runs saved before it keep their fingerprint
+    label_weight: str = field(default="uniform", metadata={"neutral": "uniform"})
+    gap_cap: float = field(default=1.0, metadata={"neutral": 1.0})  # trips, (0, 1e6]
+    gap_floor: float = field(default=0.0, metadata={"neutral": 0.0})  # trips, [0, gap_cap]
     policy: str | None = None  # saved policy for evaluation (default results/policies/<name>)
 
     def validate(self, cfg: Any = None, path: str = "agent") -> ImitationAgentConfig:
@@ -449,6 +456,10 @@ class ImitationAgentConfig(AgentConfig):
         check_range(f"{path}.updates_per_round", self.updates_per_round, 0, 1_000_000)
         check_range(f"{path}.batch_size", self.batch_size, 1, self.capacity,
                     allowed=f"[1, capacity = {self.capacity}]")
+        check_choice(f"{path}.label_weight", self.label_weight, LABEL_WEIGHTS)
+        check_range(f"{path}.gap_cap", self.gap_cap, 1e-12, 1e6, allowed="(0, 1e6]")
+        check_range(f"{path}.gap_floor", self.gap_floor, 0.0, self.gap_cap,
+                    allowed=f"[0, gap_cap = {self.gap_cap}]")
         return self
 
     def memory(self, network: Any, n_obs: int, site_bytes: int) -> list[Need]:

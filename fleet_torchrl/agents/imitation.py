@@ -36,9 +36,18 @@ The planner's futures have their own random streams, labelled by the site's inde
 environment's stream of training sites (``episode * num_sites + slot``: a new label every
 episode), so a label depends on the state, that index and the planner's seed alone.
 
+**Cost-sensitive labels** (``agent.label_weight=gap``; AggreVaTe, Ross and Bagnell, 2014):
+a pair's weight in the loss is the planner's estimate of what the wrong action would cost
+(``PlannerPolicy.last_gap``: the difference of the two actions' mean scores, a failure in
+more futures counting as ``gap_cap``), clipped to ``[agent.gap_floor, agent.gap_cap]``. The
+uniform loss spends the network on near-ties, where the planner's label is mostly its gate
+keeping the base's action and either action costs little; weighted, the student fits the
+decisions that carry the value.
+
 Logged each round: ``loss/imitation`` (mean loss of the round's steps), ``train/agreement``
 (the share of the round's states on which the student, as it was before the round's
-update, decides as the expert: held-out agreement on the states it visits), ``train/beta``
+update, decides as the expert: held-out agreement on the states it visits; with
+``label_weight=gap`` also ``train/weighted_agreement``, the same weighted by stake), ``train/beta``
 and ``train/dataset_size``.
 
 Cost: the planner labels every visited state, ``2 K H`` site-ticks each (about 70-100 us of
@@ -138,9 +147,12 @@ class ImitationLearner(Learner):
             batch_size=agent.batch_size, generator=torch.Generator().manual_seed(seeds[1]))
         self.beta = agent.beta(0)
         self._label: Tensor | None = None
+        self._weight: Tensor | None = None
         self._obs: list[Tensor] = []
         self._labels: list[Tensor] = []
+        self._weights: list[Tensor] = []
         self._agree, self._seen = 0, 0
+        self._wagree, self._wseen = 0.0, 0.0
 
     @property
     def expert(self) -> Policy:
@@ -171,8 +183,25 @@ class ImitationLearner(Learner):
             self._expert = _Ref(PlannerPolicy(frozen, first.rollouts, first.horizon,
                                               first.energy_value, first.confidence,
                                               first.seed))
-        self._obs, self._labels = [], []
+        self._obs, self._labels, self._weights = [], [], []
         self._agree, self._seen = 0, 0
+        self._wagree, self._wseen = 0.0, 0.0
+
+    @property
+    def weighted(self) -> bool:
+        """Whether labels weigh by the planner's stakes (``agent.label_weight=gap``)."""
+        return self.agent.label_weight == "gap"
+
+    def label_weights(self) -> Tensor:
+        """``[B]`` float32 weights of the labels :meth:`expert_actions` just gave: the
+        planner's stake of each decision clipped to ``[gap_floor, gap_cap]``, over
+        ``gap_cap`` (in ``(0, 1]``; a failure in more futures weighs 1)."""
+        gap = getattr(self.expert, "last_gap", None)
+        if gap is None:
+            raise TypeError("agent.label_weight=gap needs a teacher that reports its stakes "
+                            "(the rollout planner)")
+        a = self.agent
+        return (gap.clamp(a.gap_floor, a.gap_cap) / a.gap_cap).float()
 
     @torch.no_grad()
     def expert_actions(self) -> Tensor:
@@ -196,6 +225,10 @@ class ImitationLearner(Learner):
         self._seen += label.numel()
         mine = torch.rand(label.shape, generator=self.mix_gen) >= self.beta
         self._label = label
+        if self.weighted:
+            self._weight = w = self.label_weights().to(obs.device)
+            self._wagree += float((w * (student == label)).sum())
+            self._wseen += float(w.sum())
         return td.set("action", torch.where(mine.to(obs.device), student, label))
 
     def observe(self, td: TensorDictBase, learn: Tensor) -> None:
@@ -203,32 +236,49 @@ class ImitationLearner(Learner):
         assert self._label is not None, "observe() without act()"
         self._obs.append(td["observation"][learn])
         self._labels.append(self._label[learn])
-        self._label = None
+        if self.weighted:
+            assert self._weight is not None
+            self._weights.append(self._weight[learn])
+        self._label, self._weight = None, None
 
     def update(self) -> dict[str, float]:
         """Add the round's pairs to the data set, then the round's gradient steps."""
         if self._obs:
             obs, label = torch.cat(self._obs), torch.cat(self._labels)
             if label.numel():
-                self.data.extend(TensorDict({"observation": obs, "label": label},
-                                            batch_size=[label.numel()]))
-            self._obs, self._labels = [], []
+                pairs = {"observation": obs, "label": label}
+                if self.weighted:  # only then: data sets saved before it keep their keys
+                    pairs["weight"] = torch.cat(self._weights)
+                self.data.extend(TensorDict(pairs, batch_size=[label.numel()]))
+            self._obs, self._labels, self._weights = [], [], []
         out = {"loss/imitation": self.train_steps(self.updates_per_round),
                "train/beta": self.beta, "train/dataset_size": len(self.data)}
         if self._seen:
             out["train/agreement"] = self._agree / self._seen
+        if self._wseen > 0:
+            out["train/weighted_agreement"] = self._wagree / self._wseen
         return out
 
+    def loss(self, batch: TensorDictBase) -> Tensor:
+        """The logistic loss of the student on a batch of labelled pairs: the mean of the
+        pairs' cross-entropy, weighted by their ``weight`` under ``label_weight=gap``."""
+        per = nn.functional.binary_cross_entropy_with_logits(
+            self.student.logits(batch["observation"]), batch["label"].float(),
+            reduction="none")
+        if not self.weighted:
+            return per.mean()
+        w = batch["weight"]
+        return (w * per).sum() / w.sum().clamp(min=1e-12)
+
     def train_steps(self, steps: int) -> float:
-        """``steps`` Adam steps of the logistic loss on minibatches of the data set; returns
-        the mean loss (nan with no data)."""
+        """``steps`` Adam steps of the logistic loss on minibatches of the data set (each
+        pair weighted by its stake under ``label_weight=gap``, the batch's loss divided by
+        its summed weight); returns the mean loss (nan with no data)."""
         if len(self.data) == 0 or steps == 0:
             return float("nan")
         total = torch.zeros(())
         for _ in range(steps):
-            batch = self.data.sample()
-            loss = nn.functional.binary_cross_entropy_with_logits(
-                self.student.logits(batch["observation"]), batch["label"].float())
+            loss = self.loss(self.data.sample())
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
             self.optimizer.step()

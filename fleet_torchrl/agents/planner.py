@@ -32,6 +32,11 @@ the better action:
   the safety line then apply to that pair: one step of improvement over the best base at
   each decision, at one set of futures per base. With one base, or the base repeated, the
   decisions are the one-base planner's (tests/agents/test_planner.py).
+* **Stakes.** After each :meth:`decide`, ``last_gap`` (``[B]``, float64) holds for every
+  deciding site the absolute difference between the mean scores of the two actions (the
+  pair compared above), ``inf`` where one fails in more futures, and 0 for the sites that
+  did not decide: what taking the wrong action is estimated to cost, which the distilled
+  student can weight its labels by (``agent.label_weight=gap``, agents/imitation.py).
 
 So the planner with base ``P`` is one step of policy improvement over ``P``: where it
 gains significantly over ``P``, ``P`` was not optimal (``make table`` and the sweeps report
@@ -79,6 +84,8 @@ class PlannerPolicy(Policy):
         # how often it left the reference base's action; with several bases, how often the
         # reference was another than the first
         self.stats = {"decisions": 0, "changed": 0, "other_base": 0}
+        # what the last decide() estimated each decision to be worth (None before the first)
+        self.last_gap: Tensor | None = None
 
     @property
     def bases(self) -> list[Policy]:
@@ -169,6 +176,11 @@ class PlannerPolicy(Policy):
         self.stats["decisions"] += n
         self.stats["changed"] += int(switch.sum())
         self.stats["other_base"] += int((ref != 0).sum())
+        # the stake of each decision: the estimated difference between the two actions'
+        # mean scores, infinite where one fails in more futures (a failure ends the site)
+        stake = torch.where(f_other != f_base, math.inf, gain.mean(0).abs())
+        self.last_gap = torch.zeros(act.shape, dtype=torch.float64, device=dev)
+        self.last_gap[d] = stake
         out = act.clone()
         out[d] = torch.where(switch, other, base_a).to(act.dtype)
         return out

@@ -126,6 +126,9 @@ def test_policy_file_round_trip(tmp_path):
     ("agent.lr=0", "agent.lr"),
     ("agent.expert.rollouts=1", "agent.expert.rollouts"),
     ("agent.expert.base=/nowhere", "agent.expert.base"),
+    ("agent.label_weight=regret", "agent.label_weight"),
+    ("agent.gap_cap=0", "agent.gap_cap"),
+    ("agent.gap_floor=1.5", "agent.gap_floor"),  # above gap_cap = 1
 ])
 def test_bad_values_are_one_line_config_errors(override, field):
     with pytest.raises(ConfigError) as e:
@@ -163,6 +166,50 @@ def test_a_neutral_new_setting_keeps_the_saved_runs_fingerprint():
     other = training_fingerprint(compose_config(["agent=imitation", "agent.iterate_from=5"]))
     assert other["agent"]["iterate_from"] == 5
     assert fingerprint_diff(plain, other) == ["agent.iterate_from: None -> 5"]
+    for k in ("label_weight", "gap_cap", "gap_floor"):
+        assert k not in plain["agent"]
+    gap = training_fingerprint(compose_config(["agent=imitation", "agent.label_weight=gap"]))
+    assert fingerprint_diff(plain, gap) == ["agent.label_weight: None -> 'gap'"]
+
+
+def test_gap_weighted_labels_weigh_by_the_planners_stakes():
+    """Under label_weight=gap each stored pair carries the planner's stake of that decision
+    (last_gap, clipped to [gap_floor, gap_cap], over gap_cap), and the loss is the pairs'
+    cross-entropy weighted by it: a pair of weight 0 does not move the student."""
+    b = 8
+    env = FleetChargingEnv(FIVE, num_sites=b, seed=4, mdp=MDPConfig(tau_e=40))
+    lrn = learner(env, num_sites=b, label_weight="gap", gap_cap=0.5, gap_floor=0.1,
+                  batch_size=6 * b, updates_per_round=0)
+    td = env.reset()
+    lrn.start_round(0)
+    gaps = []
+    for _ in range(6):
+        td = lrn.act(td)
+        gap = lrn.expert.last_gap.clone()
+        assert gap.shape == (b,) and bool((gap >= 0).all())
+        gaps.append(gap)
+        assert torch.equal(lrn._weight, (gap.clamp(0.1, 0.5) / 0.5).float())
+        td, root = env.step_and_maybe_reset(td)
+        lrn.observe(td, torch.ones(b, dtype=torch.bool))
+        td = root
+    out = lrn.update()
+    gap = torch.cat(gaps)
+    assert bool((gap < 0.1).any()) and bool((gap > 0.5).any())  # both clips are exercised
+    assert 0.0 <= out["train/weighted_agreement"] <= 1.0
+    data = lrn.data[:]
+    assert torch.equal(data["weight"], (gap.clamp(0.1, 0.5) / 0.5).float())
+    # the loss: the weighted mean of the pairs' cross-entropy
+    per = torch.nn.functional.binary_cross_entropy_with_logits(
+        lrn.student.logits(data["observation"]), data["label"].float(), reduction="none")
+    w = data["weight"]
+    assert float(lrn.loss(data)) == pytest.approx(float((w * per).sum() / w.sum()), rel=1e-6)
+    one = data.clone()
+    one["weight"][1:] = 0.0  # only the first pair counts, whatever the others say
+    one["label"][1:] = 1 - one["label"][1:]
+    assert float(lrn.loss(one)) == pytest.approx(float(per[0]), rel=1e-6)
+    # uniform weights: the plain mean, as label_weight=uniform computes it
+    lrn.agent.label_weight = "uniform"
+    assert float(lrn.loss(data)) == pytest.approx(float(per.mean()), rel=1e-6)
 
 
 def test_expert_iteration_teaches_with_the_planner_over_the_student():
@@ -227,7 +274,7 @@ def _train(overrides, tmp, stop_after=None, resume=False):
 
 
 @pytest.mark.parametrize("extra", [["agent.capacity=500000"], ["agent.capacity=150"],
-                                   ["agent.iterate_from=2"],
+                                   ["agent.iterate_from=2"], ["agent.label_weight=gap"],
                                    ["state=all_site", "site=randomized"]])
 def test_resume_ends_where_an_uninterrupted_run_does(tmp_path, extra):
     """Killed after round 2's checkpoint and resumed: the same data set, the same student,

@@ -187,3 +187,25 @@ def test_the_reference_stays_the_first_base_unless_another_is_significantly_bett
     score[:, :, :, 2] = 5.0
     fails[0, 0, 2] = 1  # site 2: the first base's action fails once, the others' never
     assert p._reference(own, score, fails).tolist() == [1, 0, 1]
+
+
+def test_last_gap_holds_each_decisions_stake():
+    """After a decision, last_gap is 0 for the sites that did not decide, the absolute
+    difference of the two actions' mean scores for the others, and infinite where one action
+    fails in more futures: a vehicle at D with a battery that cannot finish another lap."""
+    site = Site(SiteConfig(n_vehicles=3))
+    idx = torch.arange(5)
+    s, _ = site.init_state(0, idx)
+    assert bool((s.pos[1:] != 0).all())
+    s.pos[0] = 0  # vehicle 0 at D in every site, the last two nearly empty
+    s.soc[0, 3:] = site.soc_low + 1.0
+    needs = torch.ones(5, dtype=torch.bool)
+    need = needs.clone()
+    need[1] = False
+    pol = planner(RulePolicy())
+    pol.decide(site, s, DecisionContext(need, idx, True))
+    gap = pol.last_gap
+    assert gap.shape == (5,) and gap.dtype == torch.float64
+    assert float(gap[1]) == 0.0
+    assert bool(torch.isinf(gap[3:]).all())  # passing fails: charging is worth everything
+    assert bool(torch.isfinite(gap[[0, 2]]).all()) and bool((gap[[0, 2]] >= 0).all())
