@@ -350,6 +350,8 @@ class ThresholdAgentConfig(AgentConfig):
 
 
 BASELINE_BASES = ("rule", "heuristic", "threshold")  # what a planner's base may name
+# several bases: under which base the other action (not the reference's) is scored
+OTHER_UNDER = ("best", "gated", "reference")
 
 
 @dataclass
@@ -368,6 +370,10 @@ class PlannerAgentConfig(AgentConfig):
     # there, and takes the other action where some base scores it significantly better;
     # [] = the one base (neutral: runs saved before it keep their training fingerprint)
     bases: list[str] = field(default_factory=list, metadata={"neutral": []})
+    # several bases: the base the other action is scored under: the one scoring it best on
+    # average (best), the reference's unless another scores it significantly better (gated),
+    # or always the reference's (reference); neutral, so saved runs keep their fingerprint
+    other_under: str = field(default="best", metadata={"neutral": "best"})
 
     def validate(self, cfg: Any = None, path: str = "agent") -> PlannerAgentConfig:
         _check_base(self.base, f"{path}.base")
@@ -381,6 +387,7 @@ class PlannerAgentConfig(AgentConfig):
         check_range(f"{path}.energy_value", self.energy_value, 0.0, 10.0)
         check_range(f"{path}.confidence", self.confidence, 0.0, 100.0)
         check_range(f"{path}.seed", self.seed, 0, 2**32 - 1)
+        check_choice(f"{path}.other_under", self.other_under, OTHER_UNDER)
         return self
 
     def sites_per_simulation(self) -> int:

@@ -59,7 +59,7 @@ from torch import Tensor, nn
 from ..sim import D, Site, SiteState, rng
 from ..sim.rollout import DecisionContext, advance
 from .base import Policy
-from .config import BASELINE_BASES, PlannerAgentConfig
+from .config import BASELINE_BASES, OTHER_UNDER, PlannerAgentConfig
 
 
 class PlannerPolicy(Policy):
@@ -70,7 +70,7 @@ class PlannerPolicy(Policy):
 
     def __init__(self, base: Policy, rollouts: int = 32, horizon: int = 200,
                  energy_value: float = 0.02, confidence: float = 1.5, seed: int = 0,
-                 bases: Sequence[Policy] = ()) -> None:
+                 bases: Sequence[Policy] = (), other_under: str = "best") -> None:
         super().__init__()
         if any(isinstance(b, PlannerPolicy) for b in (base, *bases)):
             raise ValueError("a planner's base policy cannot be a planner")
@@ -81,6 +81,10 @@ class PlannerPolicy(Policy):
         self.rollouts, self.horizon = int(rollouts), int(horizon)
         self.energy_value, self.confidence = float(energy_value), float(confidence)
         self.seed = int(seed)
+        if other_under not in OTHER_UNDER:
+            raise ValueError(f"other_under={other_under!r}: allowed one of "
+                             f"{', '.join(OTHER_UNDER)}")
+        self.other_under = other_under
         # how often it left the reference base's action; with several bases, how often the
         # reference was another than the first
         self.stats = {"decisions": 0, "changed": 0, "other_base": 0}
@@ -130,6 +134,22 @@ class PlannerPolicy(Policy):
         key[0] = torch.where(better[1:].any(0), -math.inf, 0.0)
         return torch.argmax(key, dim=0)
 
+    def _gated(self, a: Tensor, start: Tensor, score: Tensor, fails: Tensor) -> Tensor:
+        """For each deciding site, the base under which action ``a`` ([n]) is scored: base
+        ``start`` ([n]) unless another base scores it in fewer failed futures or better by
+        ``confidence`` standard errors of the paired difference (then the best such base)."""
+        m, n = len(score), a.numel()
+        col = torch.arange(n, device=a.device)
+        mine = score[:, a, :, col]  # [n, m, k]
+        f = fails[:, a, col]  # [m, n]
+        diff = mine - mine[col, start].unsqueeze(1)  # [n, m, k]
+        mean, se = diff.mean(2).T, (diff.std(2) / self.rollouts ** 0.5).T  # [m, n]
+        f0 = f[start, col]
+        better = (f < f0) | ((f == f0) & (mean > self.confidence * se + 1e-9))
+        key = torch.where(better, mean - 1e6 * (f - f0), -math.inf)
+        key[start, col] = torch.where(better.any(0), -math.inf, 0.0).to(key.dtype)
+        return torch.argmax(key, dim=0)
+
     @torch.no_grad()
     def decide(self, site: Site, state: SiteState, ctx: DecisionContext) -> Tensor:
         bases = self.bases
@@ -162,7 +182,12 @@ class PlannerPolicy(Policy):
             torch.zeros(n, dtype=torch.long, device=dev)
         base_a = own[ref, col]  # the reference: the first base's action, or a better base's
         other = 1 - base_a
-        alt = best(other) if len(bases) > 1 else ref
+        if len(bases) == 1 or self.other_under == "reference":
+            alt = ref
+        elif self.other_under == "gated":
+            alt = self._gated(other, ref, score, fails)
+        else:
+            alt = best(other)
         # paired over common futures: the other action (under its best base) minus the base's
         gain = (score[alt, other, :, col] - score[ref, base_a, :, col]).T  # [k, n]
         se = gain.std(0) / k ** 0.5
@@ -189,7 +214,7 @@ class PlannerPolicy(Policy):
     def from_config(cls, agent: PlannerAgentConfig, base: Policy,
                     bases: Sequence[Policy] = ()) -> PlannerPolicy:
         return cls(base, agent.rollouts, agent.horizon, agent.energy_value, agent.confidence,
-                   agent.seed, bases)
+                   agent.seed, bases, agent.other_under)
 
 
-__all__ = ["BASELINE_BASES", "PlannerAgentConfig", "PlannerPolicy"]
+__all__ = ["BASELINE_BASES", "OTHER_UNDER", "PlannerAgentConfig", "PlannerPolicy"]

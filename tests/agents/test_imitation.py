@@ -129,6 +129,7 @@ def test_policy_file_round_trip(tmp_path):
     ("agent.label_weight=regret", "agent.label_weight"),
     ("agent.gap_cap=0", "agent.gap_cap"),
     ("agent.gap_floor=1.5", "agent.gap_floor"),  # above gap_cap = 1
+    ("agent.expert.other_under=max", "agent.expert.other_under"),
 ])
 def test_bad_values_are_one_line_config_errors(override, field):
     with pytest.raises(ConfigError) as e:
@@ -168,6 +169,7 @@ def test_a_neutral_new_setting_keeps_the_saved_runs_fingerprint():
     assert fingerprint_diff(plain, other) == ["agent.iterate_from: None -> 5"]
     for k in ("label_weight", "gap_cap", "gap_floor"):
         assert k not in plain["agent"]
+    assert "other_under" not in plain["agent"]["expert"]
     gap = training_fingerprint(compose_config(["agent=imitation", "agent.label_weight=gap"]))
     assert fingerprint_diff(plain, gap) == ["agent.label_weight: None -> 'gap'"]
 

@@ -189,6 +189,35 @@ def test_the_reference_stays_the_first_base_unless_another_is_significantly_bett
     assert p._reference(own, score, fails).tolist() == [1, 0, 1]
 
 
+def test_the_other_action_is_scored_under_the_reference_unless_another_base_is_better():
+    """other_under=gated: action a stays scored under the reference base unless another
+    base scores it in fewer failed futures or better by the confidence bound; the best mean
+    alone (other_under=best) takes noise for a better base."""
+    p = planner(bases=[HeuristicPolicy(), HeuristicPolicy()], rollouts=4, confidence=1.5)
+    a = torch.tensor([1, 1, 0])  # the other action, per site
+    start = torch.tensor([0, 2, 1])  # the reference base, per site
+    score = torch.zeros(3, 2, 4, 3, dtype=torch.float64)
+    base = torch.tensor([10.0, 12.0, 11.0, 13.0], dtype=torch.float64)
+    score[0, 1, :, 0] = base
+    score[1, 1, :, 0] = base + 2.0  # site 0: base 1 scores it better in every future
+    score[2, 1, :, 1] = base
+    score[0, 1, :, 1] = base + torch.tensor([3.0, -3.0, 2.0, -1.5], dtype=torch.float64)
+    # site 1: base 0 better on average, within the noise: the reference (2) stays
+    fails = torch.zeros(3, 2, 3, dtype=torch.long)
+    fails[1, 0, 2] = 1  # site 2: under the reference (1) it fails once, under 0 and 2 never
+    score[0, 0, :, 2] = 1.0
+    assert p._gated(a, start, score, fails).tolist() == [1, 2, 0]
+    # a repeated base changes nothing, whichever way the other action is scored
+    cfg = SiteConfig(n_vehicles=4)
+    ref = simulate(planner(), cfg, 8, 600, 0)
+    for mode in ("best", "reference", "gated"):
+        two = planner(bases=[HeuristicPolicy()])
+        two.other_under = mode
+        out = simulate(two, cfg, 8, 600, 0)
+        for k in ref:
+            assert torch.equal(ref[k], out[k]), (mode, k)
+
+
 def test_last_gap_holds_each_decisions_stake():
     """After a decision, last_gap is 0 for the sites that did not decide, the absolute
     difference of the two actions' mean scores for the others, and infinite where one action
