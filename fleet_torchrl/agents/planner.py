@@ -138,7 +138,7 @@ class PlannerPolicy(Policy):
         """For each deciding site, the base under which action ``a`` ([n]) is scored: base
         ``start`` ([n]) unless another base scores it in fewer failed futures or better by
         ``confidence`` standard errors of the paired difference (then the best such base)."""
-        m, n = len(score), a.numel()
+        n = a.numel()
         col = torch.arange(n, device=a.device)
         mine = score[:, a, :, col]  # [n, m, k]
         f = fails[:, a, col]  # [m, n]
