@@ -31,9 +31,10 @@ the better action:
   other action is scored under whichever base scores it best (``agent.other_under=best``;
   ``gated``: under the reference's base unless another scores it better by the confidence
   bound; ``reference``: always under the reference's base). The best of several noisy means
-  is biased upwards: at ``N_V`` = 1 the four-base planner of the generalist left the
+  may be biased upwards: at ``N_V`` = 1 the four-base planner of the generalist left the
   reference's action in 23 % of the decisions and lost 0.66 points to the heuristic, 0.13
-  scored under the reference. The gate and
+  scored under the reference (``gated`` 0.63: there the other bases' horizon scores, not
+  their noise, mislead). The gate and
   the safety line then apply to that pair: one step of improvement over the best base at
   each decision, at one set of futures per base. With one base, or the base repeated, the
   decisions are the one-base planner's (tests/agents/test_planner.py).
