@@ -132,24 +132,22 @@ class PlannerPolicy(Policy):
         col = torch.arange(n, device=own.device)
         mine = score[torch.arange(m, device=own.device)[:, None], own, :, col]  # [m, n, k]
         f = fails.gather(1, own.unsqueeze(1)).squeeze(1)  # [m, n]
-        diff = mine - mine[:1]  # each base's own futures minus the first base's, paired
-        se = diff.std(2) / self.rollouts ** 0.5
-        better = (f < f[:1]) | ((f == f[:1]) & (diff.mean(2) > self.confidence * se + 1e-9))
-        better[0] = True  # the first base, if no other is better
-        key = torch.where(better, diff.mean(2) - 1e6 * (f - f[:1]), -math.inf)
-        key[0] = torch.where(better[1:].any(0), -math.inf, 0.0)
-        return torch.argmax(key, dim=0)
+        return self._gate(mine, f, torch.zeros(n, dtype=torch.long, device=own.device))
 
     def _gated(self, a: Tensor, start: Tensor, score: Tensor, fails: Tensor) -> Tensor:
         """For each deciding site, the base under which action ``a`` ([n]) is scored: base
         ``start`` ([n]) unless another base scores it in fewer failed futures or better by
         ``confidence`` standard errors of the paired difference (then the best such base)."""
-        n = a.numel()
-        col = torch.arange(n, device=a.device)
-        mine = score[:, a, :, col]  # [n, m, k]
-        f = fails[:, a, col]  # [m, n]
-        diff = mine - mine[col, start].unsqueeze(1)  # [n, m, k]
-        mean, se = diff.mean(2).T, (diff.std(2) / self.rollouts ** 0.5).T  # [m, n]
+        col = torch.arange(a.numel(), device=a.device)
+        return self._gate(score[:, a, :, col].transpose(0, 1), fails[:, a, col], start)
+
+    def _gate(self, mine: Tensor, f: Tensor, start: Tensor) -> Tensor:
+        """Per site, base ``start`` ([n]) unless another base fails in fewer futures (``f``,
+        [m, n]) or scores better (``mine``, [m, n, k]) by ``confidence`` standard errors of
+        the paired difference over the common futures; then the best such base."""
+        col = torch.arange(f.shape[1], device=f.device)
+        diff = mine - mine[start, col].unsqueeze(0)  # each base minus the start's, paired
+        mean, se = diff.mean(2), diff.std(2) / self.rollouts ** 0.5
         f0 = f[start, col]
         better = (f < f0) | ((f == f0) & (mean > self.confidence * se + 1e-9))
         key = torch.where(better, mean - 1e6 * (f - f0), -math.inf)
@@ -194,7 +192,7 @@ class PlannerPolicy(Policy):
             alt = self._gated(other, ref, score, fails)
         else:
             alt = best(other)
-        # paired over common futures: the other action (under its best base) minus the base's
+        # paired over common futures: the other action (under base alt) minus the reference's
         gain = (score[alt, other, :, col] - score[ref, base_a, :, col]).T  # [k, n]
         se = gain.std(0) / k ** 0.5
         f_base, f_other = fails[ref, base_a, col], fails[alt, other, col]
