@@ -122,7 +122,7 @@ class TabularAgentConfig(AgentConfig):
                    ** (round_idx / self.eps_decay_episodes))
 
 LR_DECAYS = ("none", "cosine", "linear")
-LABEL_WEIGHTS = ("uniform", "gap")  # imitation: how a label weighs in the loss
+LABEL_WEIGHTS = ("uniform", "gap", "site_gap")  # imitation: how a label weighs in the loss
 ANCHORS = ("none", "heuristic")
 ANCHOR_STATES = ("partial", "partial_site")  # encodings whose features 0-2 the heuristic reads
 
@@ -437,7 +437,9 @@ class ImitationAgentConfig(AgentConfig):
     batch_size: int = 512  # pairs per gradient step
     # the weight of a label in the loss: "uniform" (1 each) or "gap" (the planner's estimated
     # difference between the two actions' scores, capped at gap_cap: cost-sensitive
-    # imitation, AggreVaTe-style); neutral, so runs saved before it keep their fingerprint
+    # imitation, AggreVaTe-style) or "site_gap" (the same over the mean of the round's pairs
+    # from the same site: each site keeps its share of the loss); neutral, so runs saved
+    # before it keep their fingerprint
     label_weight: str = field(default="uniform", metadata={"neutral": "uniform"})
     gap_cap: float = field(default=1.0, metadata={"neutral": 1.0})  # trips, (0, 1e6]
     gap_floor: float = field(default=0.0, metadata={"neutral": 0.0})  # trips, [0, gap_cap]

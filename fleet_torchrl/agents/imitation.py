@@ -42,7 +42,11 @@ a pair's weight in the loss is the planner's estimate of what the wrong action w
 more futures counting as ``gap_cap``), clipped to ``[agent.gap_floor, agent.gap_cap]``. The
 uniform loss spends the network on near-ties, where the planner's label is mostly its gate
 keeping the base's action and either action costs little; weighted, the student fits the
-decisions that carry the value.
+decisions that carry the value. Over a site distribution that also moves the loss between
+sites: sites whose decisions carry little (few vehicles, fast chargers) get little of it.
+``agent.label_weight=site_gap`` keeps each site's share: a pair's clipped stake is divided by
+the mean clipped stake of the round's pairs from the same site (same index in the stream of
+training sites), so the weights move the loss between one site's decisions only.
 
 Logged each round: ``loss/imitation`` (mean loss of the round's steps), ``train/agreement``
 (the share of the round's states on which the student, as it was before the round's
@@ -151,6 +155,8 @@ class ImitationLearner(Learner):
         self._obs: list[Tensor] = []
         self._labels: list[Tensor] = []
         self._weights: list[Tensor] = []
+        self._index: Tensor | None = None  # the sites' indices in the training stream
+        self._sites: list[Tensor] = []
         self._agree, self._seen = 0, 0
         self._wagree, self._wseen = 0.0, 0.0
 
@@ -183,14 +189,30 @@ class ImitationLearner(Learner):
             self._expert = _Ref(PlannerPolicy(frozen, first.rollouts, first.horizon,
                                               first.energy_value, first.confidence,
                                               first.seed))
-        self._obs, self._labels, self._weights = [], [], []
+        self._obs, self._labels, self._weights, self._sites = [], [], [], []
         self._agree, self._seen = 0, 0
         self._wagree, self._wseen = 0.0, 0.0
 
     @property
     def weighted(self) -> bool:
-        """Whether labels weigh by the planner's stakes (``agent.label_weight=gap``)."""
-        return self.agent.label_weight == "gap"
+        """Whether labels weigh by the planner's stakes (``agent.label_weight`` ``gap`` or
+        ``site_gap``)."""
+        return self.agent.label_weight != "uniform"
+
+    @property
+    def per_site(self) -> bool:
+        """Whether stakes are normalised within each site (``label_weight=site_gap``)."""
+        return self.agent.label_weight == "site_gap"
+
+    @staticmethod
+    def site_normalised(weight: Tensor, site: Tensor) -> Tensor:
+        """``weight`` over the mean weight of the pairs with the same ``site``: each
+        site's pairs keep their summed weight equal to their count."""
+        _, group = torch.unique(site, return_inverse=True)
+        total = torch.zeros(int(group.max()) + 1, dtype=weight.dtype,
+                            device=weight.device).index_add_(0, group, weight)
+        count = torch.bincount(group).to(weight.dtype)
+        return weight / (total / count).clamp(min=1e-12)[group]
 
     def label_weights(self) -> Tensor:
         """``[B]`` float32 weights of the labels :meth:`expert_actions` just gave: the
@@ -198,7 +220,8 @@ class ImitationLearner(Learner):
         ``gap_cap`` (in ``(0, 1]``; a failure in more futures weighs 1)."""
         gap = getattr(self.expert, "last_gap", None)
         if gap is None:
-            raise TypeError("agent.label_weight=gap needs a teacher that reports its stakes "
+            raise TypeError(f"agent.label_weight={self.agent.label_weight} needs a teacher that "
+                            "reports its stakes "
                             "(the rollout planner)")
         a = self.agent
         return (gap.clamp(a.gap_floor, a.gap_cap) / a.gap_cap).float()
@@ -212,6 +235,7 @@ class ImitationLearner(Learner):
         b = env.num_sites
         slot = torch.arange(b, device=env.device)
         index = (env.episodes - 1).clamp(min=0) * b + slot
+        self._index = index
         need = torch.ones(b, dtype=torch.bool, device=env.device)
         return self.expert.decide(env.site, env.state,
                                   DecisionContext(need, index, env.fused)).long()
@@ -239,6 +263,9 @@ class ImitationLearner(Learner):
         if self.weighted:
             assert self._weight is not None
             self._weights.append(self._weight[learn])
+        if self.per_site:
+            assert self._index is not None
+            self._sites.append(self._index.to(learn.device)[learn])
         self._label, self._weight = None, None
 
     def update(self) -> dict[str, float]:
@@ -248,9 +275,12 @@ class ImitationLearner(Learner):
             if label.numel():
                 pairs = {"observation": obs, "label": label}
                 if self.weighted:  # only then: data sets saved before it keep their keys
-                    pairs["weight"] = torch.cat(self._weights)
+                    weight = torch.cat(self._weights)
+                    if self.per_site:
+                        weight = self.site_normalised(weight, torch.cat(self._sites))
+                    pairs["weight"] = weight
                 self.data.extend(TensorDict(pairs, batch_size=[label.numel()]))
-            self._obs, self._labels, self._weights = [], [], []
+            self._obs, self._labels, self._weights, self._sites = [], [], [], []
         out = {"loss/imitation": self.train_steps(self.updates_per_round),
                "train/beta": self.beta, "train/dataset_size": len(self.data)}
         if self._seen:
@@ -261,7 +291,8 @@ class ImitationLearner(Learner):
 
     def loss(self, batch: TensorDictBase) -> Tensor:
         """The logistic loss of the student on a batch of labelled pairs: the mean of the
-        pairs' cross-entropy, weighted by their ``weight`` under ``label_weight=gap``."""
+        pairs' cross-entropy, weighted by their ``weight`` under ``label_weight`` ``gap`` or
+        ``site_gap``."""
         per = nn.functional.binary_cross_entropy_with_logits(
             self.student.logits(batch["observation"]), batch["label"].float(),
             reduction="none")

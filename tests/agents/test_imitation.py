@@ -214,6 +214,39 @@ def test_gap_weighted_labels_weigh_by_the_planners_stakes():
     assert float(lrn.loss(data)) == pytest.approx(float(per.mean()), rel=1e-6)
 
 
+def test_site_normalised_weights_keep_each_sites_share_of_the_loss():
+    """label_weight=site_gap: a pair's clipped stake over the mean clipped stake of the
+    round's pairs from the same site, so each site's pairs weigh as many as they are and
+    the stakes only move the loss between one site's decisions."""
+    w = torch.tensor([0.2, 0.6, 1.0, 1.0, 0.1, 0.4])
+    site = torch.tensor([7, 7, 3, 3, 9, 7])
+    out = ImitationLearner.site_normalised(w, site)
+    assert torch.allclose(out, torch.tensor([0.5, 1.5, 1.0, 1.0, 1.0, 1.0]))
+    b = 8
+    env = FleetChargingEnv(FIVE, num_sites=b, seed=4, mdp=MDPConfig(tau_e=40))
+    lrn = learner(env, num_sites=b, label_weight="site_gap", gap_cap=0.5, gap_floor=0.1,
+                  batch_size=6 * b, updates_per_round=0)
+    td = env.reset()
+    lrn.start_round(0)
+    raw, index = [], []
+    for _ in range(6):
+        td = lrn.act(td)
+        raw.append(lrn._weight.clone())
+        index.append(lrn._index.clone())
+        td, root = env.step_and_maybe_reset(td)
+        lrn.observe(td, torch.ones(b, dtype=torch.bool))
+        td = root
+    lrn.update()
+    raw, index = torch.cat(raw), torch.cat(index)
+    assert index.unique().numel() > b  # some slots started a new site this round
+    w = lrn.data[:]["weight"]
+    for i in index.unique():
+        mine = index == i
+        assert float(w[mine].sum()) == pytest.approx(int(mine.sum()), rel=1e-5)
+        assert torch.allclose(w[mine], raw[mine] / raw[mine].mean())
+    assert not torch.allclose(w, torch.ones_like(w))  # the stakes still differ within sites
+
+
 def test_expert_iteration_teaches_with_the_planner_over_the_student():
     """From round iterate_from on, the labels are the planner's decisions over a frozen copy
     of the student as it stood when the round began (the configured planner's settings);
@@ -276,7 +309,7 @@ def _train(overrides, tmp, stop_after=None, resume=False):
 
 
 @pytest.mark.parametrize("extra", [["agent.capacity=500000"], ["agent.capacity=150"],
-                                   ["agent.iterate_from=2"], ["agent.label_weight=gap"],
+                                   ["agent.iterate_from=2"], ["agent.label_weight=site_gap"],
                                    ["state=all_site", "site=randomized"]])
 def test_resume_ends_where_an_uninterrupted_run_does(tmp_path, extra):
     """Killed after round 2's checkpoint and resumed: the same data set, the same student,
@@ -294,6 +327,9 @@ def test_resume_ends_where_an_uninterrupted_run_does(tmp_path, extra):
     a, b = full.learner.data[:], res.learner.data[:]
     assert torch.equal(a["observation"], b["observation"]) and torch.equal(a["label"],
                                                                          b["label"])
+    assert ("weight" in a.keys()) == ("agent.label_weight=site_gap" in extra)
+    if "weight" in a.keys():  # the stakes, normalised within each site of each round
+        assert torch.equal(a["weight"], b["weight"])
     assert policy_bytes(res.learner.student, "imitation") == \
         policy_bytes(full.learner.student, "imitation")
     assert policy_bytes(res.best_policy, "imitation") == \
