@@ -9,7 +9,10 @@ from typing import Any
 from ..env.objectives import OBJECTIVES
 
 # what a guarded selection takes off a snapshot below the heuristic somewhere: more than any
-# objective's score spans, so such a snapshot ranks below every one that is not
+# objective's score spans (trips and queue ticks per site stay far below 1e6; float64 keeps
+# the difference between two penalised scores exact to 1e-6), so such a snapshot ranks below
+# every one that is not. An offset rather than a third rank key: ``Progress.best`` is a
+# ``(failure rate, score)`` pair in every saved checkpoint, which a resume must still read.
 GUARD_PENALTY = 1e9
 
 
