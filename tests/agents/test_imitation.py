@@ -174,27 +174,36 @@ def test_a_neutral_new_setting_keeps_the_saved_runs_fingerprint():
     assert fingerprint_diff(plain, gap) == ["agent.label_weight: None -> 'gap'"]
 
 
+def _weighted_round(label_weight, after_act, b=8, steps=6):
+    """One DAgger round of ``steps`` steps on ``b`` five-vehicle sites with stakes clipped
+    to [0.1, 0.5]; ``after_act(learner)`` runs after each step's labels."""
+    env = FleetChargingEnv(FIVE, num_sites=b, seed=4, mdp=MDPConfig(tau_e=40))
+    lrn = learner(env, num_sites=b, label_weight=label_weight, gap_cap=0.5, gap_floor=0.1,
+                  batch_size=steps * b, updates_per_round=0)
+    td = env.reset()
+    lrn.start_round(0)
+    for _ in range(steps):
+        td = lrn.act(td)
+        after_act(lrn)
+        td, root = env.step_and_maybe_reset(td)
+        lrn.observe(td, torch.ones(b, dtype=torch.bool))
+        td = root
+    return lrn, lrn.update()
+
+
 def test_gap_weighted_labels_weigh_by_the_planners_stakes():
     """Under label_weight=gap each stored pair carries the planner's stake of that decision
     (last_gap, clipped to [gap_floor, gap_cap], over gap_cap), and the loss is the pairs'
     cross-entropy weighted by it: a pair of weight 0 does not move the student."""
-    b = 8
-    env = FleetChargingEnv(FIVE, num_sites=b, seed=4, mdp=MDPConfig(tau_e=40))
-    lrn = learner(env, num_sites=b, label_weight="gap", gap_cap=0.5, gap_floor=0.1,
-                  batch_size=6 * b, updates_per_round=0)
-    td = env.reset()
-    lrn.start_round(0)
     gaps = []
-    for _ in range(6):
-        td = lrn.act(td)
+
+    def check(lrn):
         gap = lrn.expert.last_gap.clone()
-        assert gap.shape == (b,) and bool((gap >= 0).all())
+        assert gap.shape == (8,) and bool((gap >= 0).all())
         gaps.append(gap)
         assert torch.equal(lrn._weight, (gap.clamp(0.1, 0.5) / 0.5).float())
-        td, root = env.step_and_maybe_reset(td)
-        lrn.observe(td, torch.ones(b, dtype=torch.bool))
-        td = root
-    out = lrn.update()
+
+    lrn, out = _weighted_round("gap", check)
     gap = torch.cat(gaps)
     assert bool((gap < 0.1).any()) and bool((gap > 0.5).any())  # both clips are exercised
     assert 0.0 <= out["train/weighted_agreement"] <= 1.0
@@ -222,23 +231,15 @@ def test_site_normalised_weights_keep_each_sites_share_of_the_loss():
     site = torch.tensor([7, 7, 3, 3, 9, 7])
     out = ImitationLearner.site_normalised(w, site)
     assert torch.allclose(out, torch.tensor([0.5, 1.5, 1.0, 1.0, 1.0, 1.0]))
-    b = 8
-    env = FleetChargingEnv(FIVE, num_sites=b, seed=4, mdp=MDPConfig(tau_e=40))
-    lrn = learner(env, num_sites=b, label_weight="site_gap", gap_cap=0.5, gap_floor=0.1,
-                  batch_size=6 * b, updates_per_round=0)
-    td = env.reset()
-    lrn.start_round(0)
     raw, index = [], []
-    for _ in range(6):
-        td = lrn.act(td)
+
+    def record(lrn):
         raw.append(lrn._weight.clone())
         index.append(lrn._index.clone())
-        td, root = env.step_and_maybe_reset(td)
-        lrn.observe(td, torch.ones(b, dtype=torch.bool))
-        td = root
-    lrn.update()
+
+    lrn, _ = _weighted_round("site_gap", record)
     raw, index = torch.cat(raw), torch.cat(index)
-    assert index.unique().numel() > b  # some slots started a new site this round
+    assert index.unique().numel() > 8  # some slots started a new site this round
     w = lrn.data[:]["weight"]
     for i in index.unique():
         mine = index == i
