@@ -220,9 +220,8 @@ class ImitationLearner(Learner):
         ``gap_cap`` (in ``(0, 1]``; a failure in more futures weighs 1)."""
         gap = getattr(self.expert, "last_gap", None)
         if gap is None:
-            raise TypeError(f"agent.label_weight={self.agent.label_weight} needs a teacher that "
-                            "reports its stakes "
-                            "(the rollout planner)")
+            raise TypeError(f"agent.label_weight={self.agent.label_weight} needs a teacher "
+                            "that reports its stakes (the rollout planner)")
         a = self.agent
         return (gap.clamp(a.gap_floor, a.gap_cap) / a.gap_cap).float()
 
