@@ -163,8 +163,8 @@ def test_the_recipes_live_in_one_place():
     cfg = compose_config([])
     assert list(cfg.recipes) == ["tabular", "dqn_partial", "dqn_all", "tabular_throughput",
                                  "dqn_partial_throughput", "imitation", "generalist",
-                                 "search_crowded", "search_slow", "generalist_dqn", "search",
-                                 "search_mlp"]
+                                 "search_crowded", "search_slow", "dqn_fast", "generalist_dqn",
+                                 "search", "search_mlp"]
     assert not hasattr(TableConfig(), "train")
     quick = compose_config(["+experiment=quick"])
     assert quick.recipes == cfg.recipes and quick.table.preview and not cfg.table.preview

@@ -207,10 +207,11 @@ def test_a_table_on_another_site_trains_there_and_refuses_what_cannot_reach_its_
     assert recipe_folder(five, "generalist") == "generalist"
     assert compose_config(run_overrides("generalist_dqn", 0, five)).site.randomized
     # ... and its teacher plans over the policies this table trains (dqn_all on its site;
-    # search_crowded and search_slow on their own)
+    # search_crowded, search_slow and dqn_fast on their own)
     assert ("agent.expert.bases=[results/policies/dqn_all_five_vehicles/seed0/policy.pt,"
             "results/policies/search_crowded/seed0/policy.pt,"
-            "results/policies/search_slow/seed0/policy.pt]") in run_overrides(
+            "results/policies/search_slow/seed0/policy.pt,"
+            "results/policies/dqn_fast/seed0/policy.pt]") in run_overrides(
                 "generalist", 0, five)
     # a field changed on top of a preset is forwarded too, under a name with its hash
     tweak = compose_config(["site=five_vehicles", "site.p_c=0.5"])
