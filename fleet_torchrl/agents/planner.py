@@ -48,10 +48,11 @@ So the planner with base ``P`` is one step of policy improvement over ``P``: whe
 gains significantly over ``P``, ``P`` was not optimal (``make table`` and the sweeps report
 what this step adds, MODEL §3.6).
 
-Cost: ``2 x rollouts x horizon`` site-ticks per decision, all decisions of an epoch in one
-batch: with the base policy inside the compiled kernel (the heuristic, threshold policies,
-tables) one kernel call per decision epoch; a network base decides its rollouts' arrivals
-with batched forward passes.
+Cost: ``2 x rollouts x horizon`` site-ticks per decision and base (``other_under=reference``
+with ``m`` bases: ``(m + 1) x rollouts x horizon``, each base running its own action only),
+all decisions of an epoch in one batch: with the base policy inside the compiled kernel
+(the heuristic, threshold policies, tables) one kernel call per decision epoch; a network
+base decides its rollouts' arrivals with batched forward passes.
 """
 
 from __future__ import annotations
@@ -108,17 +109,33 @@ class PlannerPolicy(Policy):
                         "call decide(site, state, ctx) (the evaluation protocol does)")
 
     def _futures(self, site: Site, state: SiteState, ctx: DecisionContext, base: Policy,
-                 rep: Tensor, h: Tensor, k: int, n: int) -> tuple[Tensor, Tensor]:
-        """Score ``[2, k, n]`` and failed futures ``[2, n]`` of both actions of the deciding
-        sites ``rep`` under ``base``, on the futures ``h`` (the same for every base)."""
+                 d: Tensor, charge: Tensor) -> tuple[Tensor, Tensor]:
+        """Scores ``[k, n]`` and failed futures ``[n]`` of the deciding sites ``d`` ([n],
+        a site may repeat) taking action ``charge`` ([n]) under ``base``. Future ``j`` of a
+        site is the same whatever the action, the base or the other rows of the batch (its
+        closures hash the planner's seed, the site's index, the tick and ``j``)."""
+        k, n = self.rollouts, d.numel()
+        rep = d.repeat(k)  # rollout (j, i) at j * n + i
+        future = torch.arange(k, device=d.device).repeat_interleave(n)
+        h = rng.hash_ints(self.seed, ctx.index[rep], state.tick[rep], future,
+                          rng.STREAM_PLANNER, device=d.device)
         rs = state.select(rep)
-        rs.charge = torch.arange(2, device=rep.device).repeat_interleave(k * n).bool()
+        rs.charge = charge.repeat(k).bool()
         ev = advance(site, rs, h, rs.tick + self.horizon, base.decide, base.kernel_policy(),
                      ctx.index[rep], ctx.fused)
         real = rs.pos != site.park  # the vehicles a site of a distribution does not have
         energy = (rs.soc.double() * real).sum(0)
-        score = (ev.trips.double() + self.energy_value * energy).view(2, k, n)
-        return score, ev.failed.view(2, k, n).sum(1)
+        score = (ev.trips.double() + self.energy_value * energy).view(k, n)
+        return score, ev.failed.view(k, n).sum(0)
+
+    def _both(self, site: Site, state: SiteState, ctx: DecisionContext, base: Policy,
+              d: Tensor) -> tuple[Tensor, Tensor]:
+        """Scores ``[2, k, n]`` and failed futures ``[2, n]`` of both actions of the
+        deciding sites ``d`` under ``base``, on common futures."""
+        n = d.numel()
+        act = torch.arange(2, device=d.device).repeat_interleave(n)
+        score, failed = self._futures(site, state, ctx, base, d.repeat(2), act)
+        return score.view(-1, 2, n).transpose(0, 1), failed.view(2, n)
 
     def _reference(self, own: Tensor, score: Tensor, fails: Tensor) -> Tensor:
         """For each deciding site, the base whose own action is the planner's reference:
@@ -154,36 +171,27 @@ class PlannerPolicy(Policy):
         key[start, col] = torch.where(better.any(0), -math.inf, 0.0).to(key.dtype)
         return torch.argmax(key, dim=0)
 
-    @torch.no_grad()
-    def decide(self, site: Site, state: SiteState, ctx: DecisionContext) -> Tensor:
-        bases = self.bases
-        act = self.base.decide(site, state, ctx)
-        d = ctx.need.nonzero().squeeze(1)
-        n, k = d.numel(), self.rollouts
-        if n == 0:
-            return act
-        dev = state.pos.device
-        rep = d.repeat(2 * k)  # rollout (a, j, i) at (a * k + j) * n + i
-        future = torch.arange(k, device=dev).repeat_interleave(n).repeat(2)
-        h = rng.hash_ints(self.seed, ctx.index[rep], state.tick[rep], future,
-                          rng.STREAM_PLANNER, device=dev)
-        runs = [self._futures(site, state, ctx, b, rep, h, k, n) for b in bases]
+    def _under_any(self, site: Site, state: SiteState, ctx: DecisionContext, d: Tensor,
+                   own: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """Both actions under every base (``other_under`` best or gated, or one base): the
+        paired gain ``[k, n]`` of the other action (under its base) over the reference's,
+        both actions' failed futures ``[n]``, the reference base and its action ``[n]``."""
+        bases, n = self.bases, d.numel()
+        runs = [self._both(site, state, ctx, b, d) for b in bases]
         score = torch.stack([r[0] for r in runs])  # [m, 2, k, n]
         fails = torch.stack([r[1] for r in runs])  # [m, 2, n]
-        own = torch.stack([act[d].long()] + [b.decide(site, state, ctx)[d].long()
-                                             for b in bases[1:]])  # [m, n]: each base's action
-        col = torch.arange(n, device=dev)
+        col = torch.arange(n, device=d.device)
 
         def best(a: Tensor) -> Tensor:
-            """For each site, the base under which action ``a`` ([m, n] or [n]) fails in
-            fewest futures, then scores highest on average (the first of equals)."""
+            """For each site, the base under which action ``a`` ([n]) fails in fewest
+            futures, then scores highest on average (the first of equals)."""
             a = a.expand(len(bases), n)
             f = fails.gather(1, a.unsqueeze(1)).squeeze(1)
             v = score.mean(2).gather(1, a.unsqueeze(1)).squeeze(1)
             return torch.argmax(torch.where(f == f.min(0).values, v, -math.inf), dim=0)
 
         ref = self._reference(own, score, fails) if len(bases) > 1 else \
-            torch.zeros(n, dtype=torch.long, device=dev)
+            torch.zeros(n, dtype=torch.long, device=d.device)
         base_a = own[ref, col]  # the reference: the first base's action, or a better base's
         other = 1 - base_a
         if len(bases) == 1 or self.other_under == "reference":
@@ -194,8 +202,49 @@ class PlannerPolicy(Policy):
             alt = best(other)
         # paired over common futures: the other action (under base alt) minus the reference's
         gain = (score[alt, other, :, col] - score[ref, base_a, :, col]).T  # [k, n]
+        return gain, fails[ref, base_a, col], fails[alt, other, col], ref, base_a
+
+    def _under_reference(self, site: Site, state: SiteState, ctx: DecisionContext,
+                         d: Tensor, own: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor,
+                                                          Tensor]:
+        """:meth:`_under_any` for ``other_under=reference`` at ``m + 1`` sets of futures
+        per decision instead of ``2 m``: each base runs its own action only (all the
+        reference's gate compares), then the other action runs under the reference's base
+        alone. The same decisions and stakes as scoring both actions under every base."""
+        bases, n, k = self.bases, d.numel(), self.rollouts
+        runs = [self._futures(site, state, ctx, b, d, own[i]) for i, b in enumerate(bases)]
+        mine = torch.stack([r[0] for r in runs]).permute(0, 2, 1)  # [m, n, k]
+        fails = torch.stack([r[1] for r in runs])  # [m, n]
+        col = torch.arange(n, device=d.device)
+        ref = self._gate(mine, fails, torch.zeros(n, dtype=torch.long, device=d.device))
+        base_a = own[ref, col]
+        gain = torch.empty(k, n, dtype=mine.dtype, device=d.device)
+        f_other = torch.empty(n, dtype=fails.dtype, device=d.device)
+        for b in torch.unique(ref).tolist():  # a loop over bases, each a batch of sites
+            s = (ref == b).nonzero().squeeze(1)
+            score, failed = self._futures(site, state, ctx, bases[b], d[s], 1 - base_a[s])
+            gain[:, s] = score - mine[b, s].T
+            f_other[s] = failed
+        return gain, fails[ref, col], f_other, ref, base_a
+
+    @torch.no_grad()
+    def decide(self, site: Site, state: SiteState, ctx: DecisionContext) -> Tensor:
+        bases = self.bases
+        act = self.base.decide(site, state, ctx)
+        d = ctx.need.nonzero().squeeze(1)
+        n, k = d.numel(), self.rollouts
+        if n == 0:
+            return act
+        dev = state.pos.device
+        own = torch.stack([act[d].long()] + [b.decide(site, state, ctx)[d].long()
+                                             for b in bases[1:]])  # [m, n]: each base's action
+        if len(bases) > 1 and self.other_under == "reference":
+            gain, f_base, f_other, ref, base_a = self._under_reference(site, state, ctx, d,
+                                                                       own)
+        else:
+            gain, f_base, f_other, ref, base_a = self._under_any(site, state, ctx, d, own)
+        other = 1 - base_a
         se = gain.std(0) / k ** 0.5
-        f_base, f_other = fails[ref, base_a, col], fails[alt, other, col]
         switch = (f_other < f_base) | ((f_other == f_base)
                                        & (gain.mean(0) > self.confidence * se + 1e-9))
         # never turn a charge into a pass for a battery that might not last another lap and

@@ -238,3 +238,37 @@ def test_last_gap_holds_each_decisions_stake():
     assert float(gap[1]) == 0.0
     assert bool(torch.isinf(gap[3:]).all())  # passing fails: charging is worth everything
     assert bool(torch.isfinite(gap[[0, 2]]).all()) and bool((gap[[0, 2]] >= 0).all())
+
+
+def test_scoring_under_the_reference_runs_fewer_futures_for_the_same_decisions():
+    """other_under=reference runs each base's own action and the other action under the
+    reference's base only (m + 1 sets of futures instead of 2 m): the same paired gains,
+    failed futures, references and stakes as scoring both actions under every base."""
+    site = Site(SiteConfig(n_vehicles=5, t_c=50))
+    idx = torch.arange(64)
+    s, _ = site.init_state(3, idx)
+    s.pos[0] = 0  # vehicle 0 at D in every site, at charges from nearly empty to full
+    s.soc[0] = torch.linspace(site.soc_low + 2.0, 100.0, 64).to(s.soc.dtype)
+    ctx = DecisionContext(torch.ones(64, dtype=torch.bool), idx, True)
+    pol = planner(RulePolicy(), bases=[HeuristicPolicy(), RulePolicy()], rollouts=8)
+    pol.other_under = "reference"
+    d = torch.arange(64)
+    own = torch.stack([b.decide(site, s, ctx).long() for b in pol.bases])
+    fast = pol._under_reference(site, s, ctx, d, own)
+    slow = pol._under_any(site, s, ctx, d, own)
+    ref = fast[3]
+    assert bool((ref == 0).any()) and bool((ref != 0).any())  # both kinds of reference
+    assert bool((own[1] != own[0]).any())  # and bases that disagree
+    for a, b in zip(fast, slow, strict=True):
+        assert torch.equal(a, b)
+    # and whole runs: the same records as the both-actions path
+    cfg = SiteConfig(n_vehicles=4)
+    runs = {}
+    for fast_path in (True, False):
+        p = planner(RulePolicy(), bases=[HeuristicPolicy()], rollouts=4)
+        p.other_under = "reference"
+        if not fast_path:
+            p._under_reference = p._under_any
+        runs[fast_path] = simulate(p, cfg, 8, 600, 0)
+    for k in runs[True]:
+        assert torch.equal(runs[True][k], runs[False][k]), k
