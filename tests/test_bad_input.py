@@ -515,3 +515,35 @@ def test_a_budget_that_is_not_what_runs_is_announced(tmp_path, caplog):
         Trainer(cfg, tmp_path / "run")
     said = [r.getMessage() for r in caplog.records if "train.max_episodes=1" in r.getMessage()]
     assert len(said) == 1 and "16 episodes" in said[0] and "\n" not in said[0], said
+
+
+def test_a_second_process_cannot_train_in_a_held_run_folder(tmp_path):
+    """A run folder is held by the process that trains in it: a second process (e.g. a
+    training left running by a killed ``make table`` beside the one that resumes it) stops
+    with one line naming the holder, before it writes anything; the hold ends with its
+    process however it ends, and the same process may hold the folder again."""
+    from fleet_torchrl.config import compose_config
+    from fleet_torchrl.training import Trainer
+    from fleet_torchrl.utils.checks import SetupError
+    from fleet_torchrl.utils.paths import hold_run_dir, release_run_dir
+
+    code = ("import sys, time; from fleet_torchrl.utils.paths import hold_run_dir; "
+            "hold_run_dir(sys.argv[1]); print('held', flush=True); time.sleep(600)")
+    holder = subprocess.Popen([sys.executable, "-c", code, str(tmp_path)],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(SetupError, match=f"in use by process {holder.pid}:") as e:
+            hold_run_dir(tmp_path)
+        assert "\n" not in str(e.value)
+        before = snapshot(tmp_path)
+        cfg = compose_config([*TINY, f"train.out_dir={tmp_path / 'policy'}"])
+        with pytest.raises(SetupError, match="a run already trains there"):
+            Trainer(cfg, tmp_path)
+        assert snapshot(tmp_path) == before
+    finally:
+        holder.kill()
+        holder.wait()
+    hold_run_dir(tmp_path)  # killed, the holder let go
+    hold_run_dir(tmp_path)  # and this process may hold it again
+    release_run_dir(tmp_path)

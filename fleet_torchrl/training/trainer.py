@@ -56,6 +56,7 @@ from ..evaluation import evaluate_policy, gain_over, site_strata, strata_below, 
 from ..store import default_policy_dir, policy_name
 from ..utils.monitor import Monitor
 from ..utils.numerics import flush_denormals
+from ..utils.paths import hold_run_dir, release_run_dir
 from ..utils.plotting import plot_policy_map
 from ..utils.runinfo import run_info, write_json
 from .checkpoint import CHECKPOINT, UNREADABLE, check_resumable, training_fingerprint
@@ -147,6 +148,7 @@ class Trainer:
         self.cfg = cfg
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
+        hold_run_dir(self.run_dir)  # one process per run folder (released when run() ends)
         self.name = policy_name(cfg)
         self.out_dir = default_policy_dir(cfg)
         self.device = torch.device(cfg.train.device)
@@ -372,8 +374,11 @@ class Trainer:
             bar = tqdm(total=self.n_rounds, initial=p.round, desc=f"train {self.name}",
                        unit="round")
             redirect = logging_redirect_tqdm()  # log lines above the bar, not through it
-        with redirect:
-            return self._run_rounds(stop_after_rounds, resumed, bar)
+        try:
+            with redirect:
+                return self._run_rounds(stop_after_rounds, resumed, bar)
+        finally:
+            release_run_dir(self.run_dir)
 
     def _run_rounds(self, stop_after_rounds: int | None, resumed: bool, bar: Any
                     ) -> dict[str, Any]:

@@ -13,7 +13,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from .checks import ConfigError
+from .checks import ConfigError, SetupError
 
 PSEUDO = (Path("/proc"), Path("/sys"), Path("/dev"))  # no results there, whoever runs
 
@@ -69,4 +69,53 @@ def check_input_dir(setting: str, path: str | os.PathLike) -> Path:
     return p
 
 
-__all__ = ["PSEUDO", "check_input_dir", "check_output"]
+LOCK = ".lock"
+_HELD: dict[Path, object] = {}  # the folders this process holds, by resolved path
+
+
+def hold_run_dir(run_dir: str | os.PathLike) -> None:
+    """Hold ``run_dir`` for this process: an exclusive advisory lock on ``<run_dir>/.lock``
+    that lasts until :func:`release_run_dir` or the end of the process, however it ends. A
+    second process training in the same folder, e.g. a training left behind by a killed
+    ``make table`` beside the one that resumes it, would write the same checkpoint and
+    logs; it stops here instead, naming the process that holds the folder. This process may
+    hold a folder again (a run resumed in the same process). Where the file system has no
+    locks, or the platform no ``fcntl``, the folder is not held."""
+    try:
+        import fcntl
+    except ImportError:  # not POSIX
+        return
+    key = Path(run_dir).resolve()
+    if key in _HELD:
+        return
+    f = open(key / LOCK, "a+")  # noqa: SIM115 - held open while the folder is held
+    try:
+        fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        f.seek(0)
+        holder = f.read().strip() or "another process"
+        f.close()
+        raise SetupError(f"{os.fspath(run_dir)} is in use by {holder}: a run already trains "
+                         "there; stop it first, or give this run another folder") from None
+    except OSError:  # no locks on this file system
+        f.close()
+        return
+    me = f"process {os.getpid()}\n"
+    f.seek(0)
+    if f.read() != me:  # a folder this process held before stays untouched
+        f.seek(0)
+        f.truncate()
+        f.write(me)
+        f.flush()
+    _HELD[key] = f
+
+
+def release_run_dir(run_dir: str | os.PathLike) -> None:
+    """Let go of a folder :func:`hold_run_dir` held (nothing if it holds none)."""
+    f = _HELD.pop(Path(run_dir).resolve(), None)
+    if f is not None:
+        f.close()
+
+
+__all__ = ["LOCK", "PSEUDO", "check_input_dir", "check_output", "hold_run_dir",
+           "release_run_dir"]
