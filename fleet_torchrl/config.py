@@ -164,6 +164,18 @@ def validate(cfg: Config) -> Config:
                           f"allowed {', '.join(spec.states)}")
     cfg.network.validate()
     cfg.train.validate()
+    if cfg.train.defer != "none":
+        from .agents.imitation import defers_on
+
+        if not spec.policy_class.can_defer:
+            raise ConfigError(f"train.defer={cfg.train.defer!r} is invalid for agent={spec.name}: "
+                              "allowed none (a policy defers where a classifier's logit is "
+                              "near zero: agent=imitation)")
+        if not defers_on(cfg.state.name):
+            raise ConfigError(f"train.defer={cfg.train.defer!r} is invalid with state="
+                              f"{cfg.state.name}: allowed none (the heuristic reads the partial "
+                              "state's features: state=partial, partial_site or "
+                              "partial_all_site)")
     cfg.eval.validate()
     check_range("seed", cfg.seed, 0, 2**32 - 1)
     baselines = tuple(n for n, s in AGENTS.items() if not s.trainable)

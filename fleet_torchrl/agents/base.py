@@ -40,6 +40,9 @@ class Policy(nn.Module):
     encoding: str = "partial"
     #: ``TC`` values of the panels of its policy map (free / busy by default)
     map_tc_values: ClassVar[tuple[float, ...]] = (0.0, 0.5)
+    #: whether it can defer to the heuristic where it is unsure (``set_defer_margin``:
+    #: a classifier's logit; ``train.defer``)
+    can_defer: ClassVar[bool] = False
 
     def policy_spec(self) -> dict[str, Any]:
         """Constructor arguments a policy file stores to rebuild this policy (JSON-ready)."""

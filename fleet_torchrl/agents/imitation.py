@@ -74,6 +74,7 @@ from torchrl.modules import MLP
 from ..sim import Site, SiteState, rng
 from ..sim.rollout import DecisionContext
 from .base import Learner, Policy, guard_actions
+from .baselines import HeuristicPolicy
 from .config import ImitationAgentConfig
 from .planner import PlannerPolicy
 
@@ -86,32 +87,72 @@ class ImitationPolicy(Policy):
     of :class:`~fleet_torchrl.agents.base.GuardedPolicy`: a vehicle below the site's reserve
     floor charges. A classifier's rare errors sit exactly there, where a mislabelled pass
     ends a site (measured: the generalist student failed about 1 % of the sites of the site
-    distribution without it); its teacher never leaves a charge there either."""
+    distribution without it); its teacher never leaves a charge there either.
+
+    With ``defer_margin`` m > 0 (calibrated by ``train.defer=heuristic``) the heuristic decides
+    wherever the logit lies within ``[-m, m]`` (:func:`defer_to_heuristic`)."""
 
     name = "imitation"
     map_tc_values = (0.0, 0.2, 0.4, 0.6, 0.8, 1.0)
+    can_defer = True
 
     def __init__(self, n_obs: int = 3, encoding: str = "partial", hidden: int = 128,
-                 depth: int = 3) -> None:
+                 depth: int = 3, defer_margin: float = 0.0) -> None:
         super().__init__()
         self.n_obs, self.hidden, self.depth = int(n_obs), int(hidden), int(depth)
         self.encoding = encoding
         self.net = MLP(in_features=self.n_obs, out_features=1,
                        num_cells=[self.hidden] * self.depth, activation_class=nn.ReLU)
+        self.set_defer_margin(defer_margin)
+
+    def set_defer_margin(self, margin: float) -> None:
+        """Deferral to the heuristic (:func:`defer_to_heuristic`): where the logit lies within
+        ``[-margin, margin]`` the heuristic of MODEL §3 decides; 0 = the network alone."""
+        margin = float(margin)
+        if not (0.0 <= margin < math.inf):
+            raise ValueError(f"defer_margin={margin!r} is invalid: allowed a number >= 0")
+        if margin > 0 and not defers_on(self.encoding):
+            raise ValueError(f"defer_margin={margin!r} needs an encoding that starts with the "
+                             f"partial state's features (partial, partial_site, "
+                             f"partial_all_site), not {self.encoding!r}")
+        self.defer_margin = margin
 
     def policy_spec(self) -> dict[str, Any]:
-        return {"n_obs": self.n_obs, "encoding": self.encoding, "hidden": self.hidden,
+        spec = {"n_obs": self.n_obs, "encoding": self.encoding, "hidden": self.hidden,
                 "depth": self.depth}
+        if self.defer_margin > 0:  # files without it decide with the network alone
+            spec["defer_margin"] = self.defer_margin
+        return spec
 
     def logits(self, obs: Tensor) -> Tensor:
         """``[B]`` logit of *charge*."""
         return self.net(obs).squeeze(-1)
 
     def forward(self, obs: Tensor) -> Tensor:
-        return (self.logits(obs) > 0).long()
+        logit = self.logits(obs)
+        if self.defer_margin > 0:
+            return defer_to_heuristic(logit, obs, self.defer_margin)
+        return (logit > 0).long()
 
     def decide(self, site: Site, state: SiteState, ctx: DecisionContext) -> Tensor:
         return guard_actions(site, state, super().decide(site, state, ctx))
+
+
+def defers_on(encoding: str) -> bool:
+    """Whether an encoding starts with the ``partial`` state's three features (the heuristic
+    reads them), so a student on it can defer to the heuristic."""
+    return encoding.startswith("partial")
+
+
+def defer_to_heuristic(logit: Tensor, obs: Tensor, margin: float) -> Tensor:
+    """A classifier's decisions with deferral to the heuristic of MODEL §3 (its default
+    thresholds): *charge* where ``logit > margin``, *pass* where ``logit < -margin``, and the
+    heuristic's action on the ``partial`` features ``obs[..., :3]`` in between, where the
+    network is least sure. A safe-policy-improvement device (the baseline decides where the
+    learned policy is uncertain): the margin is calibrated per run on validation sites
+    (``train.defer``, :mod:`fleet_torchrl.training.deferral`)."""
+    base = HeuristicPolicy()(obs[..., :3])
+    return torch.where(logit > margin, 1, torch.where(logit < -margin, 0, base)).long()
 
 
 class _Ref:

@@ -80,7 +80,7 @@ from ..evaluation import evaluate_policy, evaluate_with, gain_over, seed_interva
 from ..evaluation.cache import EvalCache, policy_fingerprint, site_identity
 from ..sim import SiteConfig
 from ..store import load_policies, saved_policy_path
-from ..training import Trainer, training_fingerprint
+from ..training import Trainer, result_fingerprint
 from ..training.checkpoint import without_neutral
 from ..utils.checks import ConfigError
 from ..utils.runinfo import file_sha256, read_json, run_info, to_jsonable, write_json
@@ -209,7 +209,7 @@ def point_training(cfg: Config, run_cfg: Config, label: str) -> tuple[Policy, di
     teacher = policy_file_sha256(getattr(getattr(run_cfg.agent, "expert", None), "base", None))
     if teacher is not None:  # a teacher over a saved policy: its content, not just its path
         start = [start, teacher]
-    out = Path(cfg.sweep.search_dir) / label / digest([training_fingerprint(run_cfg), start])
+    out = Path(cfg.sweep.search_dir) / label / digest([result_fingerprint(run_cfg), start])
     run_cfg.train.out_dir = str(out)
     if not reusable(out, run_cfg):
         print(f"[sweep] {label}: training -> {out}", flush=True)
@@ -248,8 +248,8 @@ def point_key(cfg: Config, site: SiteConfig, search_cfgs: dict[str, Config],
         "policies": [policy_identity(cfg, n) for n in s.policies]
         + [str(p) + ":" + file_sha256(p)[:16] for n in s.policies
            for p in seed_paths(cfg, n).values()],
-        "searches": {k: training_fingerprint(v) for k, v in search_cfgs.items()},
-        "specialists": {row: {seed: training_fingerprint(c) for seed, c in runs.items()}
+        "searches": {k: result_fingerprint(v) for k, v in search_cfgs.items()},
+        "specialists": {row: {seed: result_fingerprint(c) for seed, c in runs.items()}
                         for row, runs in specialist_cfgs.items()},
         "guard": s.guard, "seeds": "every seed of the learned policies",
         "search_seeded": s.search_seeded, "pick": [s.pick_sims, s.pick_ticks],

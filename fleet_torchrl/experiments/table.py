@@ -36,7 +36,7 @@ from ..config import Config, compose_config
 from ..evaluation import evaluate_with, gain_over, save_result, seed_interval
 from ..sim import SiteConfig
 from ..store import load_policies, seed_dir, site_preset, site_suffix
-from ..training import CHECKPOINT, checkpoint_mismatch, training_fingerprint
+from ..training import CHECKPOINT, checkpoint_mismatch, result_fingerprint
 from ..utils.checks import ConfigError
 from ..utils.plotting import plot_gain_boxplot, plot_learning_curves, save_figure
 from ..utils.runinfo import file_sha256, read_json, run_info, write_csv, write_json, write_text
@@ -161,7 +161,7 @@ def reusable(out_dir: Path, run_cfg: Config) -> bool:
         return False
     # the summary must belong to this configuration and to this very policy file (a killed
     # or concurrent run can leave a policy beside another run's summary)
-    return (rec.get("fingerprint") == training_fingerprint(run_cfg)
+    return (rec.get("fingerprint") == result_fingerprint(run_cfg)
             and rec.get("policy_sha256") == file_sha256(out_dir / POLICY_FILE))
 
 

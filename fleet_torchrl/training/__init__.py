@@ -7,15 +7,20 @@ from ..utils.lazy import lazy_exports
 from .config import TrainConfig
 
 __getattr__, __dir__ = lazy_exports(__name__, {
-    **{n: ".checkpoint" for n in ("CHECKPOINT", "checkpoint_mismatch",
+    **{n: ".checkpoint" for n in ("CHECKPOINT", "checkpoint_mismatch", "result_fingerprint",
                                   "training_fingerprint")},
     **{n: ".progress" for n in ("EvalEntry", "Progress")},
     "Trainer": ".trainer"})
 
 if TYPE_CHECKING:
-    from .checkpoint import CHECKPOINT, checkpoint_mismatch, training_fingerprint
+    from .checkpoint import (
+        CHECKPOINT,
+        checkpoint_mismatch,
+        result_fingerprint,
+        training_fingerprint,
+    )
     from .progress import EvalEntry, Progress
     from .trainer import Trainer
 
 __all__ = ["CHECKPOINT", "EvalEntry", "Progress", "TrainConfig", "Trainer",
-           "checkpoint_mismatch", "training_fingerprint"]
+           "checkpoint_mismatch", "result_fingerprint", "training_fingerprint"]

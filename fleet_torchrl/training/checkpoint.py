@@ -16,6 +16,7 @@ from typing import Any
 
 from ..agents.policy_files import policy_file_sha256
 from ..utils.runinfo import to_jsonable
+from .config import DEFERRAL_SETTINGS
 
 Config = Any  # the root ``Config``, duck-typed: this layer sits below it
 
@@ -35,7 +36,8 @@ def training_fingerprint(cfg: Config) -> dict[str, Any]:
     setting added after runs were saved, declared with ``field(metadata={"neutral": v})``,
     is left out while it is ``v``, the value that computes what the runs before it did: the
     saved runs keep their fingerprint (and stay reusable and resumable)."""
-    train = {k: v for k, v in asdict(cfg.train).items() if k not in RUN_CONTROL}
+    train = {k: v for k, v in asdict(cfg.train).items()
+             if k not in RUN_CONTROL and k not in DEFERRAL_SETTINGS}
     agent = without_neutral(cfg.agent)
     expert = agent.get("expert") if isinstance(agent, dict) else None
     if isinstance(expert, dict) and expert.get("bases"):  # a parallel rollout's teacher:
@@ -43,6 +45,17 @@ def training_fingerprint(cfg: Config) -> dict[str, Any]:
     return to_jsonable({"site": cfg.site, "state": cfg.state, "mdp": cfg.mdp,
                         "agent": agent, "network": cfg.network, "train": train,
                         "seed": cfg.seed})
+
+
+def result_fingerprint(cfg: Config) -> dict[str, Any]:
+    """What a published policy is: the training fingerprint and, when the policy defers to
+    the heuristic (``train.defer``), the deferral settings its margin was calibrated with. A
+    saved policy is reused only under the same result fingerprint; its run's checkpoint
+    resumes under the training fingerprint alone (the deferral changes no training)."""
+    fp = training_fingerprint(cfg)
+    if cfg.train.defer != "none":
+        fp["deferral"] = to_jsonable({k: getattr(cfg.train, k) for k in DEFERRAL_SETTINGS})
+    return fp
 
 
 def _with_content(base: str) -> str:

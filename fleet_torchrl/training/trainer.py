@@ -59,7 +59,13 @@ from ..utils.numerics import flush_denormals
 from ..utils.paths import hold_run_dir, release_run_dir
 from ..utils.plotting import plot_policy_map
 from ..utils.runinfo import run_info, write_json
-from .checkpoint import CHECKPOINT, UNREADABLE, check_resumable, training_fingerprint
+from .checkpoint import (
+    CHECKPOINT,
+    UNREADABLE,
+    check_resumable,
+    result_fingerprint,
+    training_fingerprint,
+)
 from .progress import EvalEntry, Progress, selection_score
 
 Config = Any  # the root ``Config``, duck-typed: this layer sits below it
@@ -354,10 +360,30 @@ class Trainer:
         atomically; the summary records the policy file's hash, so a reader can tell a
         matching pair (``experiments.table.reusable``) from one left by a killed or a
         concurrent run. While a run trains, ``out_dir`` is never touched."""
+        if self.cfg.train.defer != "none":
+            summary = {**summary, "deferral": self.calibrate_deferral()}
         summary = {**summary, "policy_sha256": self.save_best(self.out_dir / POLICY_FILE)}
         write_json(self.run_dir / "train_summary.json", summary)
         write_json(self.out_dir / "train_summary.json", summary)
         return summary
+
+    def calibrate_deferral(self) -> dict[str, Any]:
+        """Set the best snapshot's deferral margin to the heuristic, calibrated on validation
+        sites (:mod:`fleet_torchrl.training.deferral`); returns the calibration's record."""
+        from .deferral import calibrate_deferral
+
+        t = self.cfg.train
+        self.best_policy.set_defer_margin(0.0)  # calibrated from the plain student
+        rec = calibrate_deferral(self.best_policy, self.cfg.site, list(t.defer_margins),
+                                 t.defer_sims, t.defer_ticks, t.eval_seed, t.defer_points,
+                                 t.device)
+        self.best_policy.set_defer_margin(rec["margin"])
+        self.monitor.scalars({"eval/defer_margin": rec["margin"]}, self.progress.frames)
+        log.info("deferral to the heuristic: margin %g (%s)", rec["margin"],
+                 "no validation point below it" if rec["clear"] else
+                 "below it at " + ", ".join(next(c["below"] for c in rec["candidates"]
+                                                 if c["margin"] == rec["margin"])))
+        return rec
 
     # ------------------------------------------------------------------ main loop
     def run(self, stop_after_rounds: int | None = None) -> dict[str, Any]:
@@ -444,7 +470,7 @@ class Trainer:
                                                                     "failure_rate")},
                 "policy": str(self.out_dir / POLICY_FILE), "run_dir": str(self.run_dir),
                 "history": [asdict(h) for h in p.history],
-                "fingerprint": training_fingerprint(self.cfg),
+                "fingerprint": result_fingerprint(self.cfg),
                 "meta": run_info(self.cfg, seed=self.cfg.seed)}
 
 
