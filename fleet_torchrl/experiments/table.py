@@ -43,7 +43,7 @@ from ..utils.runinfo import file_sha256, read_json, run_info, write_csv, write_j
 from .improvement import improvement
 
 BASELINES = ("rule", "heuristic")
-ROW_KEYS = ("policy", "objective", "seeds", "trips_mean", "trips_std", "queue_mean",
+ROW_KEYS = ("policy", "objective", "trained_on", "seeds", "trips_mean", "trips_std", "queue_mean",
             "failure_rate", "gain_pct", "gain_ci95", "gain_min", "gain_per_seed",
             "gain_vs_heuristic_pct", "train_time_s", "improvement_pct", "improvement_ci95")
 
@@ -108,6 +108,15 @@ def site_overrides(cfg: Config) -> list[str]:
 
 def _sets_site(cfg: Config, name: str) -> bool:
     return cfg.recipes[name].site_override() is not None
+
+
+def trained_on(cfg: Config, name: str) -> str:
+    """Where recipe ``name`` trains: its own site overrides (``site=randomized``,
+    ``site.t_c=10``), or ``this site`` when it trains on the table's. A row trained elsewhere
+    (a base of the generalist's teacher) is evaluated off its site here, failures included."""
+    own = [o.lstrip("+~") for o in cfg.recipes[name].overrides
+           if o.split("=", 1)[0].lstrip("+~").split(".")[0] == "site"]
+    return ", ".join(own) or "this site"
 
 
 def recipe_folder(cfg: Config, name: str) -> str:
@@ -259,7 +268,8 @@ def objective_of(name: str, cfg: Config) -> str:
 def baseline_row(name: str, res: dict[str, Any], rule: dict[str, Any],
                  heur: dict[str, Any]) -> dict[str, Any]:
     g = gain_over(res, rule)
-    return {"policy": name, "objective": "", "seeds": [], "trips_mean": res["trips_mean"],
+    return {"policy": name, "objective": "", "trained_on": "", "seeds": [],
+            "trips_mean": res["trips_mean"],
             "trips_std": res["trips_std"], "queue_mean": res["queue_mean"],
             "failure_rate": res["failure_rate"], "gain_pct": g["gain_pct"],
             "gain_ci95": g["gain_ci95"], "gain_min": g["gain_pct"], "gain_per_seed": [],
@@ -268,7 +278,7 @@ def baseline_row(name: str, res: dict[str, Any], rule: dict[str, Any],
 
 def learned_row(name: str, objective: str, per_seed: dict[int, dict[str, Any]],
                 rule: dict[str, Any], heur: dict[str, Any],
-                times: list[float | None]) -> dict[str, Any]:
+                times: list[float | None], site: str = "this site") -> dict[str, Any]:
     """Mean over seeds of every figure; the gain with its 95 % interval across seeds."""
     gains = [gain_over(res, rule)["gain_pct"] for res in per_seed.values()]
     vs_heur = [gain_over(res, heur)["gain_pct"] for res in per_seed.values()]
@@ -277,7 +287,8 @@ def learned_row(name: str, objective: str, per_seed: dict[int, dict[str, Any]],
     def mean(key: str) -> float:
         return sum(r[key] for r in per_seed.values()) / len(per_seed)
 
-    return {"policy": name, "objective": objective, "seeds": list(per_seed),
+    return {"policy": name, "objective": objective, "trained_on": site,
+            "seeds": list(per_seed),
             "trips_mean": mean("trips_mean"), "trips_std": mean("trips_std"),
             "queue_mean": mean("queue_mean"), "failure_rate": mean("failure_rate"),
             "gain_pct": gi["mean"], "gain_ci95": gi["ci95"], "gain_min": gi["min"],
@@ -289,10 +300,10 @@ def rows_markdown(rows: list[dict[str, Any]], cfg: Config) -> str:
     e = cfg.eval
     lines = [f"# Main comparison ({e.n_sims} simulations x {e.ticks} ticks, site "
              f"'{cfg.site.name}', evaluation seed {e.seed})", "",
-             "| policy | objective | training seeds | trips | queue ticks | failure rate | "
-             "gain % vs rule | ± 95 % | per seed | vs heuristic | training time | "
-             "one-step improvement |",
-             "|---|---|---|---:|---:|---:|---:|---:|---|---:|---:|---:|"]
+             "| policy | objective | trained on | training seeds | trips | queue ticks | "
+             "failure rate | gain % vs rule | ± 95 % | per seed | vs heuristic | "
+             "training time | one-step improvement |",
+             "|---|---|---|---|---:|---:|---:|---:|---:|---|---:|---:|---:|"]
     for r in rows:
         seeds = ", ".join(map(str, r["seeds"])) or "-"
         per_seed = ", ".join(f"{g:+.2f}" for g in r["gain_per_seed"]) or "-"
@@ -301,14 +312,18 @@ def rows_markdown(rows: list[dict[str, Any]], cfg: Config) -> str:
         ci = "-" if math.isnan(r["gain_ci95"]) else f"{r['gain_ci95']:.2f}"  # one seed: none
         imp = ("-" if r.get("improvement_pct") is None else
                f"{r['improvement_pct']:+.2f} ± {r['improvement_ci95']:.2f}")
-        lines.append(f"| {r['policy']} | {r['objective'] or '-'} | {seeds} | "
+        lines.append(f"| {r['policy']} | {r['objective'] or '-'} | "
+                     f"{r.get('trained_on') or '-'} | {seeds} | "
                      f"{r['trips_mean']:.2f} | {r['queue_mean']:.2f} | "
                      f"{r['failure_rate']:.3f} | {r['gain_pct']:+.2f} | {ci} | "
                      f"{per_seed} | {r['gain_vs_heuristic_pct']:+.2f} | {ttime} | {imp} |")
     lines += ["", "Gain: trips over the rule's mean on the same sites, in %. Baselines: the "
               "paired gain and its 95 % interval over the simulations. Learned rows: the mean "
               "over their training seeds, the 95 % interval across seeds (Student's t), and "
-              "each seed's gain; trips, queue ticks and failure rate are means over the seeds."]
+              "each seed's gain; trips, queue ticks and failure rate are means over the seeds. "
+              "Trained on: the site a learned row trains on, when not this one (the bases "
+              "of the generalist's teacher, trained for crowded sites and slow or fast "
+              "chargers, are evaluated off their site here)."]
     if cfg.table.improve_sims:
         lines += ["", "One-step improvement: what the rollout planner (MODEL §3.6) adds when "
                   "the row's policy is its base (learned rows: their lowest training seed), "
@@ -377,7 +392,8 @@ def evaluate_table(cfg: Config, times: dict[tuple[str, int], float | None]
             per_seed[seed] = evaluate(pol, f"{name}_seed{seed}")
             first = first or pol
         rows.append(improve(learned_row(name, objective_of(name, cfg), per_seed, rule, heur,
-                                        [times[(name, s)] for s in per_seed]),
+                                        [times[(name, s)] for s in per_seed],
+                                        trained_on(cfg, name)),
                             first, per_seed[min(per_seed)]))
         gains[name] = [g for res in per_seed.values()
                        for g in gain_over(res, rule)["per_sim_gain_pct"]]

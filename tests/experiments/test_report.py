@@ -16,7 +16,8 @@ def test_report_from_fixture_results(tmp_path, command):
            "trips_std": 13.8, "queue_mean": 500.0, "failure_rate": 0.0, "gain_pct": 0.0,
            "gain_ci95": 0.0, "gain_min": 0.0, "gain_per_seed": [], "gain_vs_heuristic_pct": -2.2,
            "train_time_s": []}
-    learned = {**row, "policy": "dqn_all", "objective": "thesis", "seeds": [0, 1, 2],
+    learned = {**row, "policy": "dqn_all", "objective": "thesis", "trained_on": "this site",
+               "seeds": [0, 1, 2],
                "gain_pct": 2.5, "gain_ci95": 0.4, "gain_per_seed": [2.3, 2.5, 2.7],
                "train_time_s": [100.0, 110.0, None]}
     (res / "table" / "table.md").write_text(rows_markdown([row, learned], compose_config([])))
@@ -34,7 +35,7 @@ def test_report_from_fixture_results(tmp_path, command):
     out = tmp_path / "docs" / "report.md"
     assert command(report.main, f"results={res}", f"out={out}") == 0
     text = out.read_text()
-    assert "| dqn_all | thesis | 0, 1, 2 |" in text and "+2.30, +2.50, +2.70" in text
+    assert "| dqn_all | thesis | this site | 0, 1, 2 |" in text and "+2.30, +2.50, +2.70" in text
     assert "| 0.8 | +0.00 ± 0.30 | +1.50 ± 0.30 |" in text
     assert "[TRAINING.md](TRAINING.md)" in text
     assert "`make table` | 25.0 min" in text

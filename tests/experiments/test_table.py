@@ -289,3 +289,21 @@ def test_recipe_bases_are_checked():
                    "x": Recipe(["agent=imitation"], bases=bad)}
         with pytest.raises(ConfigError, match=r"recipes\.(c|x)\.bases\[0\]"):
             validate_recipes(recipes, ("rule",))
+
+
+def test_a_row_trained_on_another_site_says_so():
+    """The bases of the generalist's teacher train on other sites; the table names that site
+    beside their (off-site) figures, and a recipe without a site of its own trains here."""
+    from fleet_torchrl.experiments.table import rows_markdown, trained_on
+
+    cfg = compose_config([])
+    assert trained_on(cfg, "dqn_fast") == "site.t_c=10"
+    assert trained_on(cfg, "search_crowded") == "site.n_vehicles=5"
+    assert trained_on(cfg, "generalist") == "site=randomized"
+    assert trained_on(cfg, "dqn_partial") == "this site"
+    row = {"policy": "x", "objective": "thesis", "trained_on": "site.t_c=10", "seeds": [0],
+           "trips_mean": 1.0, "queue_mean": 1.0, "failure_rate": 0.02, "gain_pct": 1.0,
+           "gain_ci95": float("nan"), "gain_per_seed": [1.0], "gain_vs_heuristic_pct": 0.0,
+           "train_time_s": [10.0]}
+    lines = rows_markdown([row], cfg).splitlines()
+    assert "| trained on |" in lines[2] and "| x | thesis | site.t_c=10 | 0 |" in lines[4]
