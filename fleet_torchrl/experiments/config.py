@@ -57,11 +57,15 @@ class Recipe:
         """The overrides of this recipe's training run (with the preview's budget)."""
         return [*self.overrides, *(self.preview if preview else [])]
 
+    def site_overrides(self) -> list[str]:
+        """The overrides that choose the site (``site=randomized``, ``site.t_c=10``), as
+        written; empty when the recipe trains on whatever site it is given."""
+        return [o for o in self.overrides
+                if o.split("=", 1)[0].lstrip("+~").split(".")[0] == "site"]
+
     def site_override(self) -> str | None:
-        """The first override that chooses the site (``site=randomized``, ``site.t_c=10``),
-        None when the recipe trains on whatever site it is given."""
-        return next((o for o in self.overrides
-                     if o.split("=", 1)[0].lstrip("+~").split(".")[0] == "site"), None)
+        """The first override that chooses the site, None when there is none."""
+        return next(iter(self.site_overrides()), None)
 
 
 def validate_recipes(recipes: dict[str, Recipe], reserved: tuple[str, ...],

@@ -114,9 +114,7 @@ def trained_on(cfg: Config, name: str) -> str:
     """Where recipe ``name`` trains: its own site overrides (``site=randomized``,
     ``site.t_c=10``), or ``this site`` when it trains on the table's. A row trained elsewhere
     (a base of the generalist's teacher) is evaluated off its site here, failures included."""
-    own = [o.lstrip("+~") for o in cfg.recipes[name].overrides
-           if o.split("=", 1)[0].lstrip("+~").split(".")[0] == "site"]
-    return ", ".join(own) or "this site"
+    return ", ".join(o.lstrip("+~") for o in cfg.recipes[name].site_overrides()) or "this site"
 
 
 def recipe_folder(cfg: Config, name: str) -> str:
@@ -278,7 +276,7 @@ def baseline_row(name: str, res: dict[str, Any], rule: dict[str, Any],
 
 def learned_row(name: str, objective: str, per_seed: dict[int, dict[str, Any]],
                 rule: dict[str, Any], heur: dict[str, Any],
-                times: list[float | None], site: str = "this site") -> dict[str, Any]:
+                times: list[float | None], site: str) -> dict[str, Any]:
     """Mean over seeds of every figure; the gain with its 95 % interval across seeds."""
     gains = [gain_over(res, rule)["gain_pct"] for res in per_seed.values()]
     vs_heur = [gain_over(res, heur)["gain_pct"] for res in per_seed.values()]
@@ -321,9 +319,8 @@ def rows_markdown(rows: list[dict[str, Any]], cfg: Config) -> str:
               "paired gain and its 95 % interval over the simulations. Learned rows: the mean "
               "over their training seeds, the 95 % interval across seeds (Student's t), and "
               "each seed's gain; trips, queue ticks and failure rate are means over the seeds. "
-              "Trained on: the site a learned row trains on, when not this one (the bases "
-              "of the generalist's teacher, trained for crowded sites and slow or fast "
-              "chargers, are evaluated off their site here)."]
+              "Trained on: the site overrides of a learned row's recipe; a row trained on "
+              "another site is evaluated off its site here, failures included."]
     if cfg.table.improve_sims:
         lines += ["", "One-step improvement: what the rollout planner (MODEL §3.6) adds when "
                   "the row's policy is its base (learned rows: their lowest training seed), "
