@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from fleet_torchrl.agents import load_policy_file, save_policy
+from fleet_torchrl.agents.base import guard_actions
 from fleet_torchrl.agents.baselines import HeuristicPolicy, RulePolicy
 from fleet_torchrl.agents.imitation import (
     ImitationAgentConfig,
@@ -23,7 +24,7 @@ from fleet_torchrl.config import compose_config
 from fleet_torchrl.env import FleetChargingEnv, MDPConfig
 from fleet_torchrl.env.encodings import get_encoding
 from fleet_torchrl.evaluation import simulate
-from fleet_torchrl.sim import SiteConfig
+from fleet_torchrl.sim import Site, SiteConfig
 from fleet_torchrl.sim.rollout import DecisionContext
 from fleet_torchrl.utils.checks import ConfigError
 
@@ -385,3 +386,28 @@ def test_a_short_dagger_run_learns_the_planners_decisions(tmp_path):
     for tag in ("loss/imitation", "train/agreement", "train/beta", "train/dataset_size",
                 "eval/gain_over_rule_pct"):
         assert tag in tags, tag
+
+
+def test_a_network_decides_only_the_deciding_sites():
+    """Policy.decide forwards the deciding sites' rows alone (a planner's rollouts over a
+    network base: half the batch has finished its horizon): the same actions there as one
+    forward over the whole batch, *pass* elsewhere (both under the reserve floor's guard),
+    and a forward of that many rows."""
+    site = Site(SiteConfig(n_vehicles=4))
+    idx = torch.arange(40)
+    s, _ = site.init_state(2, idx)
+    s.pos[0] = 0
+    s.soc[0] = torch.linspace(site.soc_low + 1.0, 100.0, 40).to(s.soc.dtype)
+    torch.manual_seed(0)
+    pol = ImitationPolicy(get_encoding("partial_site").size(site), "partial_site", hidden=16)
+    with torch.no_grad():  # a logit spread over both signs: both actions among the sites
+        pol.net[-1].bias.sub_(pol.logits(get_encoding("partial_site")(site, s)).median())
+    full = pol(get_encoding("partial_site")(site, s))
+    assert bool((full == 1).any()) and bool((full == 0).any())
+    assert bool((guard_actions(site, s, full) == full).any())  # the network's own decisions
+    need = torch.arange(40) % 3 == 0
+    rows: list[int] = []
+    pol.net.register_forward_hook(lambda m, i, o: rows.append(i[0].shape[0]))
+    act = pol.decide(site, s, DecisionContext(need, idx, True))
+    assert rows == [int(need.sum())]
+    assert torch.equal(act, guard_actions(site, s, torch.where(need, full, 0)))
