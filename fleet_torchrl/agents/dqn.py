@@ -54,9 +54,11 @@ from .config import ANCHORS, DQNAgentConfig, NetworkConfig
 
 
 def make_qnet(net: NetworkConfig, n_obs: int) -> nn.Module:
-    """MLP ``n_obs -> [width] * depth (ReLU) -> 2`` with an identity output."""
+    """MLP ``n_obs -> [width] * depth (ReLU) -> 2`` with an identity output. The ReLUs work
+    in place (the same values and gradients; a forward of 8000 rows at 3 x 128 takes 17 %
+    less time without their copies, docs/BENCHMARKS.md)."""
     return MLP(in_features=n_obs, out_features=2, num_cells=[net.width] * net.depth,
-               activation_class=nn.ReLU)
+               activation_class=nn.ReLU, activation_kwargs={"inplace": True})
 
 
 class DQNPolicy(Policy):

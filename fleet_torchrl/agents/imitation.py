@@ -102,7 +102,8 @@ class ImitationPolicy(Policy):
         self.n_obs, self.hidden, self.depth = int(n_obs), int(hidden), int(depth)
         self.encoding = encoding
         self.net = MLP(in_features=self.n_obs, out_features=1,
-                       num_cells=[self.hidden] * self.depth, activation_class=nn.ReLU)
+                       num_cells=[self.hidden] * self.depth, activation_class=nn.ReLU,
+                       activation_kwargs={"inplace": True})  # as agents.dqn.make_qnet
         self.set_defer_margin(defer_margin)
 
     def set_defer_margin(self, margin: float) -> None:
