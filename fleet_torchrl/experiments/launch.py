@@ -82,12 +82,18 @@ class JobProgress(Callback):
             self.set_total(len(jobs[0]))
 
     def set_total(self, total: int, name: str | None = None) -> None:
-        """How many jobs this multirun launches (a sweeper that knows says so)."""
+        """How many jobs this multirun launches (a sweeper that knows says so); a launcher
+        that runs its jobs in several waves (the table) sets each wave's total, and its count
+        starts again (it printed "33 of 1 jobs done" for the one job of the table's second
+        wave)."""
         if self.folder is None:
             return
         self.name = name or self.name
-        Path(self.folder).mkdir(parents=True, exist_ok=True)
-        (Path(self.folder) / "total").write_text(str(total))
+        folder = Path(self.folder)
+        folder.mkdir(parents=True, exist_ok=True)
+        with _locked(folder / "lock"):
+            (folder / "done").unlink(missing_ok=True)
+            (folder / "total").write_text(str(total))
 
     def on_multirun_end(self, config: Any, **kwargs: Any) -> None:
         """Clean up the counters; if a job failed (raised, or returned :class:`JobFailed`),

@@ -97,5 +97,9 @@ def test_job_progress_counts_jobs_that_end_in_any_process(tmp_path, capsys):
     out = capsys.readouterr().out.splitlines()
     assert out[0].startswith("[train] 1 of 2 jobs done: seed=0 (completed, ")
     assert out[1].startswith("[train] 2 of 2 jobs done: seed=1 (completed, ")
+    progress.set_total(1, name="table, wave 2")  # a second wave counts its own jobs
+    progress.on_job_start(job)
+    progress.on_job_end(job, SimpleNamespace(status=SimpleNamespace(name="COMPLETED")))
+    assert capsys.readouterr().out.startswith("[table, wave 2] 1 of 1 jobs done: seed=1 (")
     progress.on_multirun_end(master)
     assert not (tmp_path / ".progress").exists()
