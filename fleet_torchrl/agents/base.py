@@ -78,6 +78,16 @@ class Policy(nn.Module):
         return cls(**spec)
 
 
+def relu_mlp(n_in: int, n_out: int, width: int, depth: int) -> nn.Module:
+    """The learners' network: ``n_in -> [width] * depth (ReLU) -> n_out``, identity output.
+    The ReLUs work in place (the same values and gradients; a forward of 8000 rows at 3 x 128
+    takes 17 % less time without their copies, docs/BENCHMARKS.md)."""
+    from torchrl.modules import MLP
+
+    return MLP(in_features=n_in, out_features=n_out, num_cells=[width] * depth,
+               activation_class=nn.ReLU, activation_kwargs={"inplace": True})
+
+
 class PolicyModule(TensorDictModuleBase):
     """A :class:`Policy` as a TensorDict module: reads ``in_keys[0]``, writes its actions to
     ``out_keys[0]`` in place. What ``TensorDictModule`` does for one tensor in and one out,

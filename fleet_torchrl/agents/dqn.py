@@ -44,21 +44,19 @@ from torchrl.data import (
     TensorDictReplayBuffer,
     TensorSpec,
 )
-from torchrl.modules import MLP, EGreedyModule, QValueActor
+from torchrl.modules import EGreedyModule, QValueActor
 from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate
 
 from ..env import MDPConfig, discount_exponent
-from .base import Learner, Policy
+from .base import Learner, Policy, relu_mlp
 from .baselines import HeuristicPolicy
 from .config import ANCHORS, DQNAgentConfig, NetworkConfig
 
 
 def make_qnet(net: NetworkConfig, n_obs: int) -> nn.Module:
-    """MLP ``n_obs -> [width] * depth (ReLU) -> 2`` with an identity output. The ReLUs work
-    in place (the same values and gradients; a forward of 8000 rows at 3 x 128 takes 17 %
-    less time without their copies, docs/BENCHMARKS.md)."""
-    return MLP(in_features=n_obs, out_features=2, num_cells=[net.width] * net.depth,
-               activation_class=nn.ReLU, activation_kwargs={"inplace": True})
+    """MLP ``n_obs -> [width] * depth (ReLU) -> 2`` with an identity output
+    (:func:`~fleet_torchrl.agents.base.relu_mlp`)."""
+    return relu_mlp(n_obs, 2, net.width, net.depth)
 
 
 class DQNPolicy(Policy):

@@ -69,11 +69,10 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torch import Tensor, nn
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
-from torchrl.modules import MLP
 
 from ..sim import Site, SiteState, rng
 from ..sim.rollout import DecisionContext
-from .base import Learner, Policy, guard_actions
+from .base import Learner, Policy, guard_actions, relu_mlp
 from .baselines import HeuristicPolicy
 from .config import ImitationAgentConfig
 from .planner import PlannerPolicy
@@ -101,9 +100,7 @@ class ImitationPolicy(Policy):
         super().__init__()
         self.n_obs, self.hidden, self.depth = int(n_obs), int(hidden), int(depth)
         self.encoding = encoding
-        self.net = MLP(in_features=self.n_obs, out_features=1,
-                       num_cells=[self.hidden] * self.depth, activation_class=nn.ReLU,
-                       activation_kwargs={"inplace": True})  # as agents.dqn.make_qnet
+        self.net = relu_mlp(self.n_obs, 1, self.hidden, self.depth)
         self.set_defer_margin(defer_margin)
 
     def set_defer_margin(self, margin: float) -> None:

@@ -40,7 +40,6 @@ print(json.dumps({{"env": b * steps / t, "ref": b * steps / r}}))
 _PLANNER = """
 import json, statistics, time
 import torch
-from fleet_torchrl.agents.baselines import HeuristicPolicy
 from fleet_torchrl.agents.imitation import ImitationPolicy
 from fleet_torchrl.agents.planner import PlannerPolicy
 from fleet_torchrl.env.encodings import get_encoding
