@@ -152,6 +152,23 @@ def test_run_info_records_the_package_version_and_this_checkouts_commit():
     assert info["git_commit"] in (head, f"{head}-dirty")
 
 
+def test_run_info_records_what_decides_the_cpus_floating_point_sums(monkeypatch):
+    """DQN training diverges where oneMKL takes another code branch, so a run records the CPU
+    model, oneMKL's pinned branch (``MKL_CBWR``) and torch's vector instructions."""
+    import torch
+
+    from fleet_torchrl.utils.runinfo import machine_info, machine_summary, run_info
+
+    monkeypatch.setenv("MKL_CBWR", "COMPATIBLE")
+    m = run_info()["machine"]
+    assert m["mkl_cbwr"] == "COMPATIBLE"
+    assert m["torch_cpu_capability"] == torch.backends.cpu.get_cpu_capability()
+    monkeypatch.delenv("MKL_CBWR")
+    assert machine_info()["mkl_cbwr"] is None
+    if m["cpu_model"]:
+        assert f"({m['cpu_model']})" in machine_summary()
+
+
 def test_git_commit_is_only_the_projects_own(tmp_path):
     """An installed copy inside another repository (a user's project with its virtualenv)
     records no commit; so does one inside a clone of this project that is not that clone's

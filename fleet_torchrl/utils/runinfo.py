@@ -199,16 +199,44 @@ def package_versions() -> dict[str, str | None]:
     return dict(_package_versions())
 
 
+@functools.lru_cache(maxsize=1)
+def cpu_model() -> str | None:
+    """The CPU's model name (``/proc/cpuinfo``, else what :mod:`platform` knows), or None."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip() or None
+    except (OSError, IndexError):
+        pass
+    return platform.processor() or None
+
+
 def machine_info() -> dict[str, Any]:
-    """The machine a result was made on: platform, processor and CPU count."""
-    return {"platform": platform.platform(), "processor": platform.machine(),
-            "cpus": os.cpu_count()}
+    """The machine a result was made on: platform, processor, CPU model and count, and what
+    decides a CPU's floating-point sums: the vector instructions torch's own kernels use
+    (where torch is already imported: looking it up never imports it; and the
+    ``ATEN_CPU_CAPABILITY`` asked for) and oneMKL's code branch (``MKL_CBWR``; unset: oneMKL
+    picks one per CPU). DQN and imitation training are chaotic: the same seed on a CPU where
+    oneMKL takes another branch trains another network (docs/TRAINING.md, "Why DQN runs
+    differ across machines")."""
+    info: dict[str, Any] = {"platform": platform.platform(), "processor": platform.machine(),
+                            "cpu_model": cpu_model(), "cpus": os.cpu_count(),
+                            "mkl_cbwr": os.environ.get("MKL_CBWR"),
+                            "aten_cpu_capability": os.environ.get("ATEN_CPU_CAPABILITY")}
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        try:
+            info["torch_cpu_capability"] = torch.backends.cpu.get_cpu_capability()
+        except (AttributeError, RuntimeError):  # an old or partial torch
+            pass
+    return info
 
 
 def machine_summary() -> str:
-    """:func:`machine_info` in one line, e.g. ``x86_64, 2 CPUs, Linux-...``."""
+    """:func:`machine_info` in one line, e.g. ``x86_64 (AMD EPYC), 2 CPUs, Linux-...``."""
     m = machine_info()
-    return f"{m['processor']}, {m['cpus']} CPUs, {m['platform']}"
+    model = f" ({m['cpu_model']})" if m["cpu_model"] else ""
+    return f"{m['processor']}{model}, {m['cpus']} CPUs, {m['platform']}"
 
 
 def run_info(config: Any = None, seed: int | None = None) -> dict[str, Any]:
