@@ -20,6 +20,7 @@ from __future__ import annotations
 import hashlib
 import io
 import logging
+import pickle
 from pathlib import Path
 from typing import Any
 
@@ -104,6 +105,26 @@ def policy_file_sha256(path: str | Path | None) -> str | None:
     return file_sha256(p) if p.is_file() else None
 
 
+def _load_error(e: Exception, path: Path) -> str:
+    """Why ``torch.load`` refused the file ``path``, in one short line: torch's own message
+    for a file its safe loader will not open runs to a dozen lines about its ``weights_only``
+    default and a link, and a file cut short gives an ``OSError`` or a zip reader's error,
+    none of which helps someone who passed the wrong file or an interrupted copy."""
+    try:
+        with open(path, "rb") as f:
+            zipped = f.read(4) == b"PK\x03\x04"  # what torch.save writes begins as a zip
+    except OSError:
+        zipped = False
+    if zipped and isinstance(e, (RuntimeError, OSError, EOFError)):
+        return "truncated or damaged: its zip archive cannot be read"
+    if isinstance(e, pickle.UnpicklingError):
+        return ("not a file torch.save wrote with tensors only: another kind of file, or one "
+                "holding objects a policy file never has")
+    lines = str(e).strip().splitlines()
+    first = lines[0].split(". ")[0][:200] if lines else ""
+    return f"{type(e).__name__}: {first}" if first else type(e).__name__
+
+
 def read_policy_file(path: str | Path) -> tuple[Path, dict[str, Any]]:
     """The checked bundle of ``policy.pt`` (or of a folder holding one)."""
     path = Path(path)
@@ -115,8 +136,8 @@ def read_policy_file(path: str | Path) -> tuple[Path, dict[str, Any]]:
     try:
         bundle = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # truncated or foreign file
-        raise ValueError(
-            f"{path} is not a readable policy file ({type(e).__name__}: {e})") from None
+        raise ValueError(f"{path} is not a readable policy file ({_load_error(e, path)})"
+                         ) from None
     if not isinstance(bundle, dict) or bundle.get("format") != FORMAT:
         raise ValueError(f"{path} is not a fleet_torchrl policy file (format {FORMAT} expected)")
     state = bundle.get("state_dict")

@@ -33,6 +33,17 @@ def test_policy_files_round_trip_and_reject_bad_input(tmp_path):
     (tmp_path / "bad.pt").write_bytes(b"not a torch file")
     with pytest.raises(ValueError, match="not a readable policy file"):
         load_policy_file(tmp_path / "bad.pt")
+    # a text file passed by mistake: one short line, not torch's page on weights_only
+    (tmp_path / "notes.md").write_text("# notes\n\nsome text\n")
+    with pytest.raises(ValueError, match="notes.md is not a readable policy file") as err:
+        load_policy_file(tmp_path / "notes.md")
+    assert "\n" not in str(err.value) and len(str(err.value)) < 300
+    assert "weights_only" not in str(err.value)
+    # a file cut short (a copy interrupted): said so
+    whole = (tmp_path / "p" / "policy.pt").read_bytes()
+    (tmp_path / "cut.pt").write_bytes(whole[: len(whole) // 2])
+    with pytest.raises(ValueError, match="cut.pt is not a readable policy file .truncated"):
+        load_policy_file(tmp_path / "cut.pt")
     torch.save({"hello": 1}, tmp_path / "foreign.pt")
     with pytest.raises(ValueError, match="not a fleet_torchrl policy file"):
         load_policy_file(tmp_path / "foreign.pt")
