@@ -33,8 +33,9 @@ log = logging.getLogger("fleet_torchrl.train")  # Hydra writes it to stdout and 
 def preflight(cfg: Config, run_dir: str | Path | None) -> None:
     """What is checked before Hydra writes the run folder (:class:`~fleet_torchrl.cli.
     ValidateFirst`) and again before a job trains: the agent is a learner, the folder its
-    policy is published to can be written (not only after the whole training), and a resume
-    finds its checkpoint, of the same settings (a refused resume writes nothing)."""
+    policy is published to can be written (not only after the whole training), no policy file
+    is named for it to ignore (``agent.policy``), and a resume finds its checkpoint, of the same
+    settings (a refused resume writes nothing)."""
     from .agents.registry import AGENTS, get_agent
     from .store import default_policy_dir
     from .training.checkpoint import CHECKPOINT, check_resumable
@@ -45,6 +46,12 @@ def preflight(cfg: Config, run_dir: str | Path | None) -> None:
         raise ConfigError(f"agent={cfg.agent.name} is invalid for train: it is not trained; "
                           "allowed one of "
                           + ", ".join(n for n, s in AGENTS.items() if s.trainable))
+    if getattr(cfg.agent, "policy", None):  # what evaluate loads; a training would ignore it
+        raise ConfigError(
+            f"agent.policy={cfg.agent.policy} is invalid for train: it names the saved policy "
+            "that evaluate loads, and a training starts from its own seed, not from a file; "
+            "drop it (continue a run with resume=true hydra.run.dir=<its run folder>; choose "
+            "where the trained policy goes with train.out_dir)")
     check_output("train.out_dir" if cfg.train.out_dir else "table.policies_dir",
                  default_policy_dir(cfg), "dir")
     if cfg.resume and run_dir is not None:

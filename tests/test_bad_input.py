@@ -142,6 +142,7 @@ COMMANDS = [
     ("train", ["agent=search", "agent.population=100000000000"], "agent"),
     ("train", ["agent=tabular", "agent.alpha=5"], "agent.alpha"),
     ("train", ["agent=dqn", "train.device=cuda:99"], "train.device"),
+    ("train", ["agent=dqn", "agent.policy=results/policies/dqn_partial"], "agent.policy"),
     # compare: results that are no results, and a gain that would be +nan %
     ("compare", ["result=number.json", "baseline=good.json"], "number.json"),
     ("compare", ["result=null.json", "baseline=good.json"], "null.json"),
