@@ -548,3 +548,13 @@ def test_a_second_process_cannot_train_in_a_held_run_folder(tmp_path):
     hold_run_dir(tmp_path)  # killed, the holder let go
     hold_run_dir(tmp_path)  # and this process may hold it again
     release_run_dir(tmp_path)
+
+
+def test_an_exception_is_told_in_one_short_line():
+    """What the kernel's setup errors and an unreadable policy file quote of the exception."""
+    from fleet_torchrl.utils.checks import exception_line
+
+    assert exception_line(OSError("disk full\nsecond line")) == "OSError: disk full"
+    assert exception_line(RuntimeError("x" * 500)) == "RuntimeError: " + "x" * 200
+    assert exception_line(KeyError()) == "KeyError"
+    assert exception_line(ValueError("  \n ")) == "ValueError"

@@ -26,6 +26,7 @@ from typing import Any
 
 import torch
 
+from ..utils.checks import exception_line
 from ..utils.runinfo import atomic_write, file_sha256
 from .base import Policy
 
@@ -120,9 +121,7 @@ def _load_error(e: Exception, path: Path) -> str:
     if isinstance(e, pickle.UnpicklingError):
         return ("not a file torch.save wrote with tensors only: another kind of file, or one "
                 "holding objects a policy file never has")
-    lines = str(e).strip().splitlines()
-    first = lines[0].split(". ")[0][:200] if lines else ""
-    return f"{type(e).__name__}: {first}" if first else type(e).__name__
+    return exception_line(e)
 
 
 def read_policy_file(path: str | Path) -> tuple[Path, dict[str, Any]]:

@@ -455,19 +455,16 @@ def call(name: str, *args) -> None:
     try:
         kernel(*args)
     except Exception as first:  # noqa: BLE001 (a cache that cannot be loaded: rebuild it)
-        from ..utils.checks import SetupError
+        from ..utils.checks import SetupError, exception_line
 
-        reason = f"{type(first).__name__}: {str(first).strip().splitlines()[0][:200]}" \
-            if str(first).strip() else type(first).__name__
         _log().warning("the compiled kernel's cache could not be loaded (%s): cleared, "
-                       "compiling the kernel again", reason)
+                       "compiling the kernel again", exception_line(first))
         clear_cache()
         try:
             kernel(*args)
         except Exception as e:  # noqa: BLE001
-            msg = str(e).strip().splitlines()[0][:200] if str(e).strip() else ""
-            raise SetupError(f"the compiled kernel cannot be built here ({type(e).__name__}"
-                             f"{': ' + msg if msg else ''}); use the eager backend "
+            raise SetupError(f"the compiled kernel cannot be built here ({exception_line(e)}); "
+                             "use the eager backend "
                              "(eval.backend=eager, FleetChargingEnv(fused=False))") from None
     _called.add(name)
     write_manifest()

@@ -26,6 +26,14 @@ class SetupError(RuntimeError):
     said in one line with what to do instead; the commands report it like a bad value."""
 
 
+def exception_line(exc: BaseException, limit: int = 200) -> str:
+    """An exception as one short line for a message: its type, then the first line of its
+    text cut to ``limit`` characters (the type alone when it has no text)."""
+    text = str(exc).strip()
+    return f"{type(exc).__name__}: {text.splitlines()[0][:limit]}" if text else \
+        type(exc).__name__
+
+
 # Schemas validate themselves on construction (:func:`validate_on_init`), so a config built
 # in Python is checked like one given on the command line. Inside :func:`deferred_validation`
 # they do not: OmegaConf builds a composed config bottom-up, where a nested schema cannot
