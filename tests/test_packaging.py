@@ -98,6 +98,9 @@ def test_licence_is_an_spdx_string_and_python_versions_are_declared():
 
     project = PROJECT["project"]
     assert project["license"] == "MIT"  # SPDX expression (PEP 639), not a table
+    assert project["license-files"] == ["LICENSE"]
+    licence = (ROOT / "LICENSE").read_text()
+    assert licence.startswith("MIT License") and "WITHOUT WARRANTY OF ANY KIND" in licence
     build = _requirements(PROJECT["build-system"]["requires"])
     assert Version("77") in SpecifierSet(build["setuptools"])  # the first to read it
     assert not SpecifierSet(build["setuptools"]).contains("76")
