@@ -43,7 +43,7 @@ def snapshot(root: Path) -> dict[str, tuple[int, int]]:
 
 def _result(n: int = 3, trips=None) -> dict:
     trips = [10, 11, 12][:n] if trips is None else trips
-    return {"policy": "x", "seed": 0, "n_sims": n, "ticks": 100,
+    return {"policy": "x", "seed": 0, "n_sims": n, "ticks": 100, "site": {"name": "default"},
             "records": {"trips": trips, "queue": [0] * n, "failed": [False] * n,
                         "ticks_survived": [100] * n}}
 
