@@ -477,7 +477,10 @@ NAME_LIMIT = 200  # characters of a policy's name
 
 def _short(value: Any) -> str:
     """``repr(value)`` cut to 40 characters (a forged file's value is quoted, not dumped)."""
-    text = repr(value) if not isinstance(value, (dict, list)) else type(value).__name__
+    if isinstance(value, (dict, list)):  # a container's items are not quoted
+        return ("{}" if isinstance(value, dict) else "[]") if not value else \
+            ("{...}" if isinstance(value, dict) else "[...]")
+    text = repr(value)
     return text if len(text) <= 40 else text[:37] + "..."
 
 
