@@ -126,8 +126,8 @@ def read_json(path: str | os.PathLike) -> Any:
         raise ValueError(f"{path} is not valid JSON of this project (nested too deeply)"
                          ) from None
     except ValueError as e:  # an integer of more digits than Python converts
-        raise ValueError(f"{path} is not valid JSON of this project ({e})".split(";")[0]
-                         + ")") from None
+        reason = str(e).split(";")[0].strip() or type(e).__name__
+        raise ValueError(f"{path} is not valid JSON of this project ({reason})") from None
 
 
 def to_jsonable(obj: Any) -> Any:
