@@ -296,15 +296,18 @@ class ValidateFirst(_callback_base()):
             _check_job(job_cfg, "hydra.sweep.dir", "hydra.sweep.subdir", label)
 
 
-def hydra_command(task: Callable[[Any], Any], config_name: str = "config"
-                  ) -> Callable[[], Any]:
+def hydra_command(task: Callable[[Any], Any], config_name: str = "config",
+                  config_path: str = "conf") -> Callable[[], Any]:
     """The entry point of a command (console script and ``python -m``): Hydra's app of
-    ``task`` on ``fleet_torchrl/conf/<config_name>.yaml``, the schemas registered first, its
-    errors one line each. ``task`` must be defined in a module of this package's top level
-    (Hydra finds ``conf/`` beside it and names the job after that module)."""
+    ``task`` on ``fleet_torchrl/<config_path>/<config_name>.yaml``, the schemas registered
+    first, its errors one line each. ``task`` must be defined in a module of this package's
+    top level (Hydra finds ``config_path`` beside it and names the job after that module).
+    Hydra's tab completion offers every group of ``config_path``: a command that takes none
+    of the model's groups has a folder of its own (``tool_conf``)."""
     import hydra
 
-    app = hydra.main(version_base="1.3", config_path="conf", config_name=config_name)(task)
+    app = hydra.main(version_base="1.3", config_path=config_path,
+                     config_name=config_name)(task)
 
     def main() -> Any:
         register_configs()

@@ -304,7 +304,8 @@ def without_hydra(cfg: DictConfig) -> DictConfig:
 
 
 def to_tool_config(cfg: DictConfig, schema: type) -> Any:
-    """A file tool's composed config (``conf/compare.yaml``, ...) as its validated dataclass."""
+    """A file tool's composed config (``conf/report.yaml``, ``tool_conf/compare.yaml``, ...)
+    as its validated dataclass."""
     bad = unknown_keys(cfg)
     if bad:
         raise ConfigError(bad[0])

@@ -43,7 +43,7 @@ def snapshot(root: Path) -> dict[str, tuple[int, int]]:
 
 def _result(n: int = 3, trips=None) -> dict:
     trips = [10, 11, 12][:n] if trips is None else trips
-    return {"policy": "x", "seed": 0, "n_sims": n, "ticks": 100,
+    return {"policy": "x", "seed": 0, "n_sims": n, "ticks": 100, "site": {"name": "default"},
             "records": {"trips": trips, "queue": [0] * n, "failed": [False] * n,
                         "ticks_survived": [100] * n}}
 
@@ -558,3 +558,120 @@ def test_an_exception_is_told_in_one_short_line():
     assert exception_line(RuntimeError("x" * 500)) == "RuntimeError: " + "x" * 200
     assert exception_line(KeyError()) == "KeyError"
     assert exception_line(ValueError("  \n ")) == "ValueError"
+
+
+# ---- compare validates its files' schema and refuses non-finite or overflowing figures
+def _compare_files(w: Path) -> None:
+    """Results that overflow, are not finite, nest thousands deep or name no site, beside
+    ``good.json`` (of the ``workdir`` fixture's helper ``_result``, which names a site)."""
+    good = _result()
+
+    def rec(**kw):
+        return {**good, "records": {**good["records"], **kw}}
+
+    files = {
+        "overflow": rec(trips=[10**400, 11, 12]),  # Python reads it as a 401-digit int
+        "inf_trips": rec(trips=[float("inf"), 11, 12]),  # written as Infinity
+        "huge_trips": rec(trips=[1e12, 11, 12]),  # finite, beyond any simulation
+        "fraction": rec(trips=[10.5, 11, 12]),
+        "queue_overflow": rec(queue=[0, 10**30, 0]),
+        "failed_two": rec(failed=[0, 2, 0]),
+        "no_queue": {**good, "records": {k: v for k, v in good["records"].items()
+                                         if k != "queue"}},
+        "no_site": {k: v for k, v in good.items() if k != "site"},
+        "null_site": {**good, "site": None},
+        "empty_site": {**good, "site": {}},
+        "deep_site": {**good, "site": {"a": {"b": {"c": {"d": {"e": 1}}}}}},
+        "seed_overflow": {**good, "seed": 10**400},
+        "sims_overflow": {**good, "n_sims": 10**400},
+        "name_newline": {**good, "policy": "x\nerror: forged"},
+        "other_seed": {**good, "seed": 1},
+        "a_comparison": {"kind": "fleet-compare", "rows": []},
+    }
+    for name, value in files.items():
+        (w / f"{name}.json").write_text(json.dumps(value))
+    (w / "deep.json").write_text("[" * 100_000 + "]" * 100_000)  # RecursionError in json
+    (w / "deep_dict.json").write_text('{"a":' * 100_000 + "1" + "}" * 100_000)
+    (w / "digits.json").write_text('{"policy": "x", "seed": ' + "9" * 5000 + "}")
+
+
+COMPARE_BAD = [
+    (["result=overflow.json", "baseline=good.json"], "records.trips[0]"),
+    (["result=good.json", "baseline=inf_trips.json"], "records.trips[0]=inf"),
+    (["result=huge_trips.json", "baseline=good.json"], "records.trips[0]"),
+    (["result=fraction.json", "baseline=good.json"], "records.trips[0]=10.5"),
+    (["result=queue_overflow.json", "baseline=good.json"], "records.queue[1]"),
+    (["result=failed_two.json", "baseline=good.json"], "records.failed[1]"),
+    (["result=no_queue.json", "baseline=good.json"], "records.queue"),
+    (["result=no_site.json", "baseline=good.json"], "missing site"),
+    (["result=no_site.json", "baseline=no_site.json"], "missing site"),
+    (["result=good.json", "baseline=null_site.json"], "site=None"),
+    (["result=empty_site.json", "baseline=good.json"], "site={}"),
+    (["result=deep_site.json", "baseline=good.json"], "site="),
+    (["result=seed_overflow.json", "baseline=good.json"], "seed="),
+    (["result=sims_overflow.json", "baseline=good.json"], "n_sims="),
+    (["result=name_newline.json", "baseline=good.json"], "policy="),
+    (["result=deep.json", "baseline=good.json"], "deep.json is not valid JSON"),
+    (["result=good.json", "baseline=deep_dict.json"], "nested too deeply"),
+    (["result=digits.json", "baseline=good.json"], "digits.json is not valid JSON"),
+    # several results: every one pairs with the baseline, named if not
+    (["results=[good.json,other_seed.json]", "baseline=good.json"],
+     "other_seed.json cannot be paired with the baseline good.json: seed differs (1 vs 0)"),
+    (["results=[good.json,overflow.json]", "baseline=good.json"], "overflow.json"),
+    (["results=[]", "baseline=good.json"], "results=[]"),
+    (["result=good.json", "results=[good.json]", "baseline=good.json"], "results="),
+    # out: checked before any file is read, never over an input or a file of another kind
+    (["result=good.json", "baseline=good.json", "out=taken.json"], "out="),
+    (["result=good.json", "baseline=good.json", "out=cmp.txt"], "out="),
+    (["result=good.json", "baseline=good.json", "out=/proc/cmp.json"], "out="),
+    (["result=good.json", "baseline=good.json", "out=afile/cmp.json"], "out="),
+    (["result=deep.json", "baseline=good.json", "out=good.json", "overwrite=true"],
+     "a file being compared"),
+    (["result=good.json", "baseline=good.json", "out=a_comparison.json"], "overwrite=true"),
+    (["result=good.json", "baseline=good.json", "out=number.json", "overwrite=true"],
+     "no comparison"),
+    (["result=good.json", "baseline=good.json", "out="], "out"),
+]
+
+
+@pytest.mark.parametrize("args,msg", COMPARE_BAD, ids=[" ".join(a) for a, _ in COMPARE_BAD])
+def test_compare_refuses_bad_files_in_one_line_and_writes_nothing(args, msg, workdir, command,
+                                                                   capsys):
+    _compare_files(workdir)
+    test_a_command_refuses_bad_input_in_one_line_and_writes_nothing(
+        "compare", args, msg, workdir, command, capsys)
+
+
+def test_compare_files_that_overflow_or_nest_are_refused_by_the_python_api(tmp_path):
+    from fleet_torchrl.evaluation.results import compare, gain_over, load_result
+    from fleet_torchrl.utils.runinfo import read_json
+
+    _compare_files(tmp_path)
+    (tmp_path / "good.json").write_text(json.dumps(_result()))
+    for name in ("overflow", "inf_trips", "huge_trips", "queue_overflow", "no_site",
+                 "null_site", "seed_overflow", "sims_overflow", "deep", "deep_dict", "digits"):
+        with pytest.raises(ValueError) as e:
+            load_result(tmp_path / f"{name}.json")
+        assert "\n" not in str(e.value) and f"{name}.json" in str(e.value), name
+        assert len(str(e.value)) < 300, name  # a 400-digit figure is quoted, not dumped
+    with pytest.raises(ValueError, match="nested too deeply"):
+        read_json(tmp_path / "deep.json")
+    # two results that name no site pair with nothing (they would compare equal)
+    no_site = {k: v for k, v in _result().items() if k != "site"}
+    with pytest.raises(ValueError, match="names no site"):
+        gain_over(no_site, no_site)
+    g = compare(tmp_path / "good.json", tmp_path / "good.json")
+    assert g["gain_pct"] == 0.0 and math.isfinite(g["gain_ci95"])
+
+
+@pytest.mark.parametrize("name", ["deep.json", "overflow.json"])
+def test_compare_on_deep_or_overflowing_json_is_one_line_from_the_command_line(name, workdir):
+    _compare_files(workdir)
+    before = snapshot(workdir)
+    r = subprocess.run([sys.executable, "-m", "fleet_torchrl.compare", f"result={name}",
+                        "baseline=good.json", "out=cmp.json"], cwd=workdir,
+                       capture_output=True, text=True, timeout=120)
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert r.returncode == 2 and len(lines) == 1, r.stderr
+    assert lines[0].startswith(f"error: {name}") and "Traceback" not in r.stderr
+    assert r.stdout == "" and snapshot(workdir) == before

@@ -35,6 +35,8 @@ def test_wheel_contains_every_config(tmp_path):
     expected = {f"fleet_torchrl/conf/{p.relative_to(CONF_DIR)}" for p in CONF_DIR.rglob("*.yaml")}
     assert len(expected) >= 20
     assert expected <= names, sorted(expected - names)
+    # compare's own config folder (no model groups for its completion to offer)
+    assert "fleet_torchrl/tool_conf/compare.yaml" in names
     assert "fleet_torchrl/sim/site.py" in names and "fleet_torchrl/agents/registry.py" in names
     # the table's sweeper, where Hydra looks for plugins; hydra_plugins stays a namespace
     assert "hydra_plugins/fleet_torchrl_table/table_sweeper.py" in names

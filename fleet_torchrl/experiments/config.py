@@ -361,21 +361,47 @@ class BenchConfig:
 # the commands' convention: Hydra overrides key=value.
 @dataclass
 class CompareConfig:
-    """``fleet-compare``: the paired gain in trips of one evaluation result over another."""
+    """``fleet-compare``: results against a baseline on the same sites, in trips, queue and
+    failures with paired 95 % intervals; one table, and with ``out`` a file and a figure."""
 
     result: str | None = None  # a result JSON (fleet-evaluate eval.out=...)
-    baseline: str | None = None  # the result it is compared with (same eval.seed: paired)
+    results: list[str] | None = None  # several, one row each: results=[a.json,b.json]
+    baseline: str | None = None  # the result they are compared with (same eval.seed: paired)
+    out: str | None = None  # OUT.json (+ OUT.csv, OUT.png beside it); null: print only
+    overwrite: bool = False  # replace a comparison that exists at out
 
     def __post_init__(self) -> None:
         check_types(self, "compare")  # the paths are the command's to require
 
     def validate(self) -> CompareConfig:
-        for name in ("result", "baseline"):
-            if not getattr(self, name):
-                raise ConfigError(f"{name}=null is invalid: allowed the path of an evaluation "
-                                  "result, e.g. fleet-compare result=results/eval/heur.json "
-                                  "baseline=results/eval/rule.json")
+        if not self.result and self.results is None:
+            raise ConfigError("result=null is invalid: allowed the path of an evaluation "
+                              "result, e.g. fleet-compare result=results/eval/heur.json "
+                              "baseline=results/eval/rule.json, or several: "
+                              "results=[a.json,b.json]")
+        if not self.baseline:
+            raise ConfigError("baseline=null is invalid: allowed the path of an evaluation "
+                              "result, e.g. fleet-compare result=results/eval/heur.json "
+                              "baseline=results/eval/rule.json")
+        if self.result and self.results is not None:
+            raise ConfigError(f"result={self.result} is invalid with results= set: allowed "
+                              "one of them (results=[a.json,b.json] compares several)")
+        if self.results is not None:
+            if not self.results:
+                raise ConfigError("results=[] is invalid: allowed a list of evaluation "
+                                  "results, e.g. results=[a.json,b.json]")
+            for i, path in enumerate(self.results):
+                if not isinstance(path, str) or not path:
+                    raise ConfigError(f"results[{i}]={path!r} is invalid: allowed the path "
+                                      "of an evaluation result")
+        if self.out is not None and not self.out:
+            raise ConfigError("out='' is invalid: allowed a path ending in .json, or null "
+                              "(print only)")
         return self
+
+    def files(self) -> list[str]:
+        """The result files compared, in the table's order."""
+        return [self.result] if self.result else list(self.results or [])
 
 
 @dataclass

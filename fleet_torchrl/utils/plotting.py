@@ -1,4 +1,5 @@
-"""Figures: policy maps (MODEL §5 item 2) and the box plot of the main comparison."""
+"""Figures: policy maps (MODEL §5 item 2), the box plot of the main comparison and the
+paired differences of ``fleet-compare``."""
 
 from __future__ import annotations
 
@@ -98,26 +99,114 @@ def save_figure(fig, path: str | Path) -> Path:
     return out
 
 
+def whisker_span(values: list[float]) -> tuple[float, float]:
+    """The ends of a box plot's whiskers over ``values`` (Tukey's, as matplotlib draws them:
+    the most extreme values within 1.5 interquartile ranges of the quartiles)."""
+    x = torch.tensor(values, dtype=torch.float64)
+    q1, q3 = (float(q) for q in torch.quantile(x, torch.tensor([0.25, 0.75],
+                                                               dtype=torch.float64)))
+    iqr = q3 - q1
+    inside = x[(x >= q1 - 1.5 * iqr) & (x <= q3 + 1.5 * iqr)]
+    return float(inside.min()), float(inside.max())
+
+
+def _median(values: list[float] | torch.Tensor) -> float:
+    """The median (the mean of the two middle values of an even count)."""
+    return float(torch.quantile(torch.as_tensor(values, dtype=torch.float64), 0.5))
+
+
+def robust_limits(rows: dict[str, list[float]] | list[list[float]], keep: float = 0.0,
+                  reach: float = 3.0) -> tuple[float, float]:
+    """Axis limits for box plots of several rows that one outlier row cannot squash.
+
+    Each row spans its whiskers (:func:`whisker_span`: a row's own outliers, a failed
+    simulation tens of % below, lie beyond them). The typical row spans from the median of
+    the rows' lower whisker ends to the median of their upper ends; the band around it
+    reaches ``reach`` times the larger of that span and the median row's width further on
+    each side. A row whose median lies outside the band (a policy that fails in most
+    simulations) is left out of the limits, and the others' whiskers count as far as the
+    band: what lies beyond the axis is marked on its edge and counted by the plot instead of
+    flattening every other box. ``keep`` (the baseline's 0) stays in view when it lies in
+    the band. A margin of 5 % of the range (at least 0.5) is added on each side."""
+    values = [list(r) for r in (rows.values() if isinstance(rows, dict) else rows) if len(r)]
+    if not values:
+        return -1.0, 1.0
+    spans = [whisker_span(r) for r in values]
+    lows = torch.tensor([a for a, _ in spans], dtype=torch.float64)
+    highs = torch.tensor([b for _, b in spans], dtype=torch.float64)
+    medians = torch.tensor([_median(r) for r in values], dtype=torch.float64)
+    core_lo, core_hi = _median(lows), _median(highs)
+    width = _median(highs - lows)
+    tol = reach * max(width, core_hi - core_lo) or 1.0
+    band_lo, band_hi = core_lo - tol, core_hi + tol
+    near = (medians >= band_lo) & (medians <= band_hi)
+    if not bool(near.any()):  # no typical row (two rows far apart): show them all
+        lo, hi = float(lows.min()), float(highs.max())
+    else:
+        lo = max(float(lows[near].min()), band_lo)
+        hi = min(float(highs[near].max()), band_hi)
+    if band_lo <= keep <= band_hi:
+        lo, hi = min(lo, keep), max(hi, keep)
+    pad = max(0.05 * (hi - lo), 0.5)
+    return lo - pad, hi + pad
+
+
+STRIP_POINTS = 300  # rows of at most this many points are drawn point by point too
+
+
+def _robust_boxes(ax, rows: dict[str, list[float]], ylabel: str, points: bool = False) -> None:
+    """Box plots of ``rows`` on :func:`robust_limits`; the points of a row beyond the axis
+    are drawn as a triangle on its edge and counted in the row's label (with the row's
+    median where that lies beyond it too). With ``points``, a row of at most
+    :data:`STRIP_POINTS` values is also drawn point by point, jittered sideways."""
+    data = [list(v) for v in rows.values()]
+    ax.boxplot([d if d else [float("nan")] for d in data], showfliers=True,
+               flierprops={"markersize": 2})
+    if points:
+        gen = torch.Generator().manual_seed(0)  # the same figure for the same data
+        for i, vs in enumerate(data, start=1):
+            if 0 < len(vs) <= STRIP_POINTS:
+                x = i + 0.12 * (torch.rand(len(vs), generator=gen, dtype=torch.float64) - 0.5)
+                ax.scatter(x.tolist(), vs, s=6, alpha=0.45, color="tab:blue", zorder=3)
+    lo, hi = robust_limits(rows)
+    ax.set_ylim(lo, hi)
+    labels = []
+    for i, (name, vs) in enumerate(zip(rows, data, strict=True), start=1):
+        below, above = sum(v < lo for v in vs), sum(v > hi for v in vs)
+        notes = []
+        for n, edge, marker, where in ((below, lo, "v", "below"), (above, hi, "^", "above")):
+            if n:
+                ax.scatter([i], [edge], marker=marker, s=30, color="firebrick",
+                           clip_on=False, zorder=5)
+                notes.append(f"{n} {where}")
+        if vs:
+            med = _median(vs)
+            if not lo <= med <= hi:
+                notes.append(f"median {med:+.3g}")
+        labels.append(name + ("\n" + ", ".join(notes) if notes else ""))
+    ax.set_xticks(range(1, len(rows) + 1), labels, rotation=15, fontsize=8)
+    if lo < 0.0 < hi:
+        ax.axhline(0.0, color="grey", lw=0.8, ls="--")
+    ax.set_ylabel(ylabel)
+
+
 def plot_gain_boxplot(gains: dict[str, list[float]], title: str):
-    """Box plot of each simulation's trips as % over the benchmark's mean, per policy."""
-    fig, ax = plt.subplots(figsize=(1.5 * len(gains) + 2, 3.6))
-    ax.boxplot(list(gains.values()), showfliers=True, flierprops={"markersize": 2})
-    ax.set_xticks(range(1, len(gains) + 1), list(gains), rotation=15)
-    # a failed simulation (tens of % below) would squash every box: clip the axis to the
-    # central range and count what lies outside it
-    values = torch.tensor([v for vs in gains.values() for v in vs], dtype=torch.float64)
-    if values.numel() > 0:
-        lo, hi = torch.quantile(values, torch.tensor([0.001, 0.999], dtype=torch.float64))
-        pad = 0.15 * float(hi - lo) + 0.5
-        lo, hi = float(lo) - pad, float(hi) + pad
-        ax.set_ylim(lo, hi)
-        for i, vs in enumerate(gains.values(), start=1):
-            out = sum(1 for v in vs if v < lo or v > hi)
-            if out:
-                ax.annotate(f"{out} outside\n(failures)", (i, lo), textcoords="offset points",
-                            xytext=(0, 4), ha="center", fontsize=7, color="firebrick")
-    ax.axhline(0.0, color="grey", lw=0.8, ls="--")
-    ax.set_ylabel("trips, % over rule mean")
+    """Box plot of each simulation's trips as % over the benchmark's mean, per policy, on an
+    axis one outlier row cannot squash (:func:`robust_limits`; points beyond it marked on
+    the edge and counted in the row's label)."""
+    fig, ax = plt.subplots(figsize=(1.5 * len(gains) + 2, 3.8))
+    _robust_boxes(ax, gains, "trips, % over rule mean")
+    ax.set_title(title, fontsize=10)
+    fig.tight_layout()
+    return fig
+
+
+def plot_paired_differences(diffs: dict[str, list[float]], baseline: str, title: str):
+    """Box plot, per result, of its paired differences in trips from ``baseline``: each
+    simulation's (each site's) trips minus the baseline's on the same site, with the points
+    themselves where there are few, on the same robust axis as :func:`plot_gain_boxplot`."""
+    fig, ax = plt.subplots(figsize=(1.5 * len(diffs) + 2.4, 3.8))
+    _robust_boxes(ax, diffs, f"trips minus {baseline}'s, per site", points=True)
     ax.set_title(title, fontsize=10)
     fig.tight_layout()
     return fig

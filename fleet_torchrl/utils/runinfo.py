@@ -110,6 +110,9 @@ def write_csv(path: str | os.PathLike, rows: list[dict[str, Any]], fields: tuple
 
 
 def read_json(path: str | os.PathLike) -> Any:
+    """The JSON at ``path``; a missing file raises ``FileNotFoundError``, anything that is no
+    JSON this project reads (bad syntax, not UTF-8, nested thousands deep, an integer of
+    thousands of digits) ``ValueError`` in one line naming ``path``."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no such result file: {path}")
@@ -117,6 +120,14 @@ def read_json(path: str | os.PathLike) -> Any:
         return json.loads(path.read_text())
     except json.JSONDecodeError as e:
         raise ValueError(f"{path} is not valid JSON ({e.msg} at line {e.lineno})") from None
+    except UnicodeDecodeError:
+        raise ValueError(f"{path} is not valid JSON (not UTF-8 text)") from None
+    except RecursionError:  # thousands of nested [ or {: no file of this project's
+        raise ValueError(f"{path} is not valid JSON of this project (nested too deeply)"
+                         ) from None
+    except ValueError as e:  # an integer of more digits than Python converts
+        reason = str(e).split(";")[0].strip() or type(e).__name__
+        raise ValueError(f"{path} is not valid JSON of this project ({reason})") from None
 
 
 def to_jsonable(obj: Any) -> Any:

@@ -206,10 +206,11 @@ def test_paired_gain_interval_is_a_paired_t_interval(tmp_path, capsys, command):
     """At 8 simulations ``compare`` printed ±3.60 with 1.96 where the paired t gives ±4.34."""
     from fleet_torchrl.compare import main
 
-    base = {"policy": "rule", "seed": 0, "n_sims": 8, "ticks": 10, "site": {},
-            "records": {"trips": [100, 102, 98, 101, 99, 103, 97, 100]}}
+    other = {"queue": [0] * 8, "failed": [False] * 8, "ticks_survived": [10] * 8}
+    base = {"policy": "rule", "seed": 0, "n_sims": 8, "ticks": 10, "site": {"name": "s"},
+            "records": {"trips": [100, 102, 98, 101, 99, 103, 97, 100], **other}}
     res = {**base, "policy": "better",
-           "records": {"trips": [104, 101, 99, 108, 97, 107, 99, 106]}}
+           "records": {"trips": [104, 101, 99, 108, 97, 107, 99, 106], **other}}
     diff = torch.tensor(res["records"]["trips"], dtype=torch.float64) - torch.tensor(
         base["records"]["trips"], dtype=torch.float64)
     # baseline mean 100 trips: the half-width in % of it is the half-width in trips
