@@ -108,6 +108,21 @@ def run_pid() -> int:
     return int(os.environ.get(RUN_PID) or os.getpid())
 
 
+def activate_line() -> str:
+    """``${fleet_activate:}``, the set-up line of the Slurm preset
+    (``conf/hydra/launcher/slurm.yaml``), resolved in the submitting command: the shell line
+    that puts a job on the Python environment that command runs from (``sys.prefix``):
+    ``source <prefix>/bin/activate`` in a virtual environment (a checkout's ``.venv`` or
+    any other), else its ``bin/`` first on ``PATH`` (a package installed outside one)."""
+    import shlex
+    import sys
+
+    prefix = Path(sys.prefix)
+    if (prefix / "bin" / "activate").is_file():
+        return f"source {shlex.quote(str(prefix / 'bin' / 'activate'))}"
+    return f'export PATH={shlex.quote(str(prefix / "bin"))}:"$PATH"'
+
+
 def mark_multirun(argv: list[str]) -> None:
     """In the command that launches a multirun (``-m``/``--multirun``), pass its process id
     to the workers it starts (their ``${fleet_pid:}``)."""
@@ -129,7 +144,8 @@ def register_configs() -> None:
                             r"path=conf is not available", category=UserWarning)
     for name, resolver in (("fleet_user_options", user_options_help),
                            ("fleet_script", lambda job: f"fleet-{job.replace('_', '-')}"),
-                           ("fleet_pid", run_pid)):  # run folders: unique per command
+                           ("fleet_pid", run_pid),  # run folders: unique per command
+                           ("fleet_activate", activate_line)):  # a Slurm job's environment
         if not OmegaConf.has_resolver(name):
             OmegaConf.register_new_resolver(name, resolver)
     cs = ConfigStore.instance()

@@ -40,7 +40,7 @@ def preflight(cfg: Config, run_dir: str | Path | None) -> None:
 def run(cfg: Config, out: str | Path | None) -> dict:
     from .evaluation import evaluate_with, format_table, save_result
     from .evaluation.results import check_result_path
-    from .store import make_policy
+    from .store import make_policy, site_label
     from .utils.runinfo import run_info
 
     if out is not None:
@@ -50,7 +50,7 @@ def run(cfg: Config, out: str | Path | None) -> dict:
     result = evaluate_with(policy, cfg.site, e, name=cfg.agent.name)
     result["meta"] = run_info(cfg, seed=e.seed)
     log.info("\n" + format_table([result]))
-    log.info(f"({e.n_sims} sims x {e.ticks} ticks on site '{cfg.site.name}', seed {e.seed}, "
+    log.info(f"({e.n_sims} sims x {e.ticks} ticks on site {site_label(cfg.site)}, seed {e.seed}, "
              f"{result['wall_time_s']:.2f} s)")
     if out is not None:
         js, cs = save_result(result, out)

@@ -84,6 +84,23 @@ def site_suffix(site: SiteConfig) -> str:
     return f"_{site.name}-{digest}"
 
 
+def site_label(site: SiteConfig) -> str:
+    """How logs name a site: ``'<name>'`` for a preset as it stands (or a site the package
+    has no preset of), ``'<name>' with p_c=0.5, t_c=20`` for a packaged preset with fields
+    changed (each changed field as an override writes it; ``ranges.t_c=[20, 40]``)."""
+    preset = site_preset(site.name)
+    if preset is None or preset == site:
+        return f"'{site.name}'"
+    have, want = asdict(site), asdict(preset)
+    changed = []
+    for key, value in have.items():
+        if key == "ranges" and value is not None and want[key] is not None:
+            changed += [f"ranges.{k}={v}" for k, v in value.items() if v != want[key][k]]
+        elif value != want[key]:
+            changed.append(f"{key}={value}")
+    return f"'{site.name}' with {', '.join(changed)}"
+
+
 def default_policy_dir(cfg: Any) -> Path:
     """Where a training run of ``cfg`` saves its policy, and where evaluation looks for it."""
     if cfg.train.out_dir:

@@ -188,3 +188,22 @@ def test_a_multiruns_jobs_share_one_sweep_folder(tmp_path):
     sweeps = list((tmp_path / "multirun" / "evaluate").iterdir())
     assert len(sweeps) == 1, sweeps
     assert sorted(p.name for p in sweeps[0].iterdir() if p.is_dir()) == ["0", "1"]
+
+
+def test_the_evaluation_log_names_the_site_fields_changed_from_its_preset(tmp_path, caplog):
+    """A preset with a field overridden is not the preset: the summary line says what
+    changed (``site 'default' with p_c=0.5``), a preset as it stands is named alone."""
+    import logging
+
+    from fleet_torchrl import evaluate
+    from fleet_torchrl.config import compose_config
+
+    base = ["eval.n_sims=2", "eval.ticks=20", "eval.progress=false"]
+    for i, (overrides, want) in enumerate((
+            (["site.p_c=0.5"], "on site 'default' with p_c=0.5, seed"),
+            (["site=five_vehicles"], "on site 'five_vehicles', seed"))):
+        caplog.clear()
+        with caplog.at_level(logging.INFO, logger="fleet_torchrl.evaluate"):
+            evaluate.run(compose_config([*base, *overrides]), tmp_path / f"r{i}.json")
+        said = [r.getMessage() for r in caplog.records if " sims x " in r.getMessage()]
+        assert len(said) == 1 and want in said[0], said

@@ -77,6 +77,11 @@ class Policy(nn.Module):
         """The policy :meth:`policy_spec` describes (its weights are loaded afterwards)."""
         return cls(**spec)
 
+    def td_module(self, obs_key: str, action_key: str, action_spec: Any) -> TensorDictModuleBase:
+        """This policy as a TensorDict module (:func:`as_td_module`): a :class:`PolicyModule`;
+        a policy with Q-values returns a Q-value actor over ``action_spec``."""
+        return PolicyModule(self, obs_key, action_key)
+
 
 def relu_mlp(n_in: int, n_out: int, width: int, depth: int) -> nn.Module:
     """The learners' network: ``n_in -> [width] * depth (ReLU) -> n_out``, identity output.
@@ -93,7 +98,11 @@ class PolicyModule(TensorDictModuleBase):
     ``out_keys[0]`` in place. What ``TensorDictModule`` does for one tensor in and one out,
     without its per-call conversion of every output (``TensorDict.from_any``, which looks for
     pandas on disk at each call): environment collection at B = 1024 makes about 20 % more
-    decisions per second with it (docs/BENCHMARKS.md)."""
+    decisions per second with it (docs/BENCHMARKS.md).
+
+    It writes no Q-values: TorchRL's ``DQNLoss`` (which asks its value network for its
+    ``action_space``) is refused with one line naming the policy; a DQN policy's
+    :func:`as_td_module` is a Q-value actor instead."""
 
     def __init__(self, policy: Policy, obs_key: str = "observation",
                  action_key: str = "action") -> None:
@@ -102,15 +111,29 @@ class PolicyModule(TensorDictModuleBase):
         self.in_keys = [obs_key]
         self.out_keys = [action_key]
 
+    @property
+    def action_space(self) -> str:
+        raise ValueError(f"a {self.module.name} policy has no Q-values: DQNLoss (and every "
+                         "Q-value loss) needs as_td_module of a dqn policy")
+
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         tensordict.set(self.out_keys[0], self.module(tensordict.get(self.in_keys[0])))
         return tensordict
 
 
-def as_td_module(policy: Policy, obs_key: str = "observation",
-                 action_key: str = "action") -> PolicyModule:
-    """Wrap a policy as a TorchRL/TensorDict module (for ``env.rollout``, ``Collector``)."""
-    return PolicyModule(policy, obs_key, action_key)
+def as_td_module(policy: Policy, obs_key: str = "observation", action_key: str = "action",
+                 action_spec: Any = None) -> TensorDictModuleBase:
+    """Wrap a policy as a TorchRL/TensorDict module (for ``env.rollout``, ``Collector``).
+
+    A policy that has Q-values (DQN: :meth:`Policy.td_module`) becomes a Q-value actor that
+    also writes ``action_value`` and ``chosen_action_value`` and carries ``action_spec``
+    (default: one site's action, ``env.action_spec_unbatched``), what TorchRL's ``DQNLoss``
+    takes; every other policy a :class:`PolicyModule`."""
+    if action_spec is None:
+        from torchrl.data import Categorical
+
+        action_spec = Categorical(2, dtype=torch.int64)
+    return policy.td_module(obs_key, action_key, action_spec)
 
 
 class Learner(nn.Module, ABC):

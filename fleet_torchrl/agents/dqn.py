@@ -35,16 +35,17 @@ from typing import Any
 
 import torch
 from tensordict import TensorDictBase
-from tensordict.nn import TensorDictSequential
+from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 from torch import Tensor, nn
 from torchrl.data import (
     Categorical,
+    Composite,
     LazyTensorStorage,
     PrioritizedSampler,
     TensorDictReplayBuffer,
     TensorSpec,
 )
-from torchrl.modules import EGreedyModule, QValueActor
+from torchrl.modules import EGreedyModule, QValueActor, SafeSequential
 from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate
 
 from ..env import MDPConfig, discount_exponent
@@ -97,13 +98,48 @@ class DQNPolicy(Policy):
                    spec.get("anchor_params"))
 
     def forward(self, obs: Tensor) -> Tensor:
-        q = self.qnet(obs)
+        return self.actions(self.qnet(obs), obs)
+
+    def actions(self, q: Tensor, obs: Tensor) -> Tensor:
+        """The decisions of :meth:`forward` from its Q-values ``q`` of ``obs``."""
         if self.anchor == "none":
             return q.argmax(-1)
         adv = q[..., 1] - q[..., 0]
         base = self.base(obs[..., :3])
         m = self.anchor_margin
         return torch.where(adv > m, 1, torch.where(adv < -m, 0, base))
+
+
+    def td_module(self, obs_key: str, action_key: str,
+                  action_spec: TensorSpec) -> TensorDictModuleBase:
+        """A Q-value actor over ``action_spec`` (:func:`~fleet_torchrl.agents.as_td_module`):
+        writes ``action_value`` (the Q-network's), ``chosen_action_value`` (its greedy maximum,
+        the backup of the project's learner) and ``action``, what TorchRL's ``DQNLoss`` takes
+        as its value network. Anchored, ``action`` is then replaced by the anchored decision
+        (:meth:`forward`; with ``double_dqn`` the loss's next action is that decision)."""
+        actor = QValueActor(self.qnet, in_keys=[obs_key], spec=action_spec.clone(),
+                            action_key=action_key)
+        if self.anchor == "none":
+            return actor
+        return SafeSequential(actor, _AnchoredAction(self, obs_key, action_key, action_spec))
+
+
+class _AnchoredAction(TensorDictModuleBase):
+    """Replaces the greedy ``action`` of a Q-value actor by an anchored policy's decision
+    from the ``action_value`` the actor wrote (no second forward of the Q-network)."""
+
+    def __init__(self, policy: DQNPolicy, obs_key: str, action_key: str,
+                 action_spec: TensorSpec) -> None:
+        super().__init__()
+        self.policy = policy
+        self.in_keys = [obs_key, "action_value"]
+        self.out_keys = [action_key]
+        self.spec = Composite({action_key: action_spec.clone()}, shape=action_spec.shape)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        obs, q = (tensordict.get(k) for k in self.in_keys)
+        tensordict.set(self.out_keys[0], self.policy.actions(q, obs))
+        return tensordict
 
 
 def make_actor(qnet: nn.Module) -> QValueActor:

@@ -32,7 +32,9 @@ counts, closure hashes, per-episode counters), so a checkpoint continues the str
 training sites exactly, also in the middle of episodes.
 
 Besides ``observation`` the environment reports per-episode counters ``trips``,
-``queue_ticks`` and ``ticks`` (cumulative since the site's reset) for logging.
+``queue_ticks`` and ``ticks`` (cumulative since the site's reset) for logging, and
+``is_init``, true where a reset started a site's episode (the key TorchRL's ``InitTracker``
+adds, so that its collectors take any policy as it is).
 
 Bad input is refused, not guessed at (:func:`check_actions`, the one rule of this environment
 and both Gymnasium/SB3 adapters): an action is ``0`` (pass) or ``1`` (charge), one per site,
@@ -191,6 +193,9 @@ class FleetChargingEnv(EnvBase):
             trips=Unbounded(shape=(b, 1), dtype=torch.int64, device=dev),
             queue_ticks=Unbounded(shape=(b, 1), dtype=torch.int64, device=dev),
             ticks=Unbounded(shape=(b, 1), dtype=torch.int64, device=dev),
+            # True where an episode starts (what TorchRL's InitTracker adds): a Collector
+            # then needs no transform for any policy, and warns of none
+            is_init=Categorical(2, shape=(b, 1), dtype=torch.bool, device=dev),
             shape=(b,), device=dev,
         )
         self.action_spec = Categorical(2, shape=(b,), dtype=torch.int64, device=dev)
@@ -222,7 +227,9 @@ class FleetChargingEnv(EnvBase):
         if mask is None:
             mask = torch.ones(self.num_sites, dtype=torch.bool, device=self.device)
         self._start_episodes(mask)
-        return self._observe()
+        td = self._observe()
+        td.set("is_init", mask.unsqueeze(-1).clone())
+        return td
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         b = self.num_sites
@@ -240,6 +247,7 @@ class FleetChargingEnv(EnvBase):
         td.set("terminated", terminated.unsqueeze(-1))
         td.set("truncated", truncated.unsqueeze(-1))
         td.set("done", (terminated | truncated).unsqueeze(-1))
+        td.set("is_init", torch.zeros_like(terminated).unsqueeze(-1))
         return td
 
     # ------------------------------------------------------------------ checkpoints

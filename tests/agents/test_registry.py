@@ -218,3 +218,17 @@ def test_evaluating_on_another_site_says_how(tmp_path):
     cfg = compose_config(["agent=tabular", "site=five_vehicles",
                           f"agent.policy={tmp_path / 'tabular'}"])
     assert isinstance(make_policy(cfg), TabularQPolicy)
+
+
+def test_site_label_names_a_preset_and_the_fields_changed_from_it():
+    from fleet_torchrl.sim import SiteConfig, SiteRanges
+    from fleet_torchrl.store import site_label, site_preset
+
+    assert site_label(SiteConfig()) == "'default'"
+    assert site_label(site_preset("five_vehicles")) == "'five_vehicles'"
+    assert site_label(SiteConfig(p_c=0.5, t_c=20)) == "'default' with p_c=0.5, t_c=20"
+    assert site_label(SiteConfig(name="mine", p_c=0.5)) == "'mine'"  # no packaged preset
+    randomized = site_preset("randomized")
+    narrowed = SiteConfig(name="randomized", ranges=SiteRanges(
+        n_vehicles=randomized.ranges.n_vehicles, p_c=randomized.ranges.p_c, t_c=[20, 40]))
+    assert site_label(narrowed) == "'randomized' with ranges.t_c=[20, 40]"

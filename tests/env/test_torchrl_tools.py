@@ -6,6 +6,7 @@ driven by a project policy wrapped with ``as_td_module``."""
 from __future__ import annotations
 
 import functools
+import warnings
 
 import pytest
 import torch
@@ -96,6 +97,26 @@ def _dqn():
     return DQNPolicy(NetworkConfig(width=8, depth=1), 3, "partial", "heuristic", 0.5)
 
 
+def _dqn_greedy():
+    from fleet_torchrl.agents.dqn import DQNPolicy, NetworkConfig
+
+    torch.manual_seed(1)
+    return DQNPolicy(NetworkConfig(width=8, depth=1), 3, "partial")
+
+
+def _threshold():
+    from fleet_torchrl.agents.threshold import ThresholdPolicy
+
+    return ThresholdPolicy(low=30.0, free_upper=70.0, busy_tc=0.4, busy_upper=50.0)
+
+
+def _imitation():
+    from fleet_torchrl.agents.imitation import ImitationPolicy
+
+    torch.manual_seed(2)
+    return ImitationPolicy(hidden=8, depth=1)
+
+
 def _search():
     from fleet_torchrl.agents.search import SearchPolicy
 
@@ -104,20 +125,27 @@ def _search():
     return pol
 
 
-@pytest.mark.parametrize("make", [RulePolicy, HeuristicPolicy, _tabular, _dqn, _search],
-                         ids=["rule", "heuristic", "tabular", "dqn", "search"])
+POLICIES = {"rule": RulePolicy, "heuristic": HeuristicPolicy, "threshold": _threshold,
+            "tabular": _tabular, "dqn": _dqn, "dqn_greedy": _dqn_greedy, "search": _search,
+            "imitation": _imitation}
+
+
+@pytest.mark.parametrize("make", POLICIES.values(), ids=POLICIES.keys())
 def test_collector_runs_a_wrapped_project_policy(make):
     """Every policy class, the learned ones with ``policy_spec`` among them, drives TorchRL's
-    Collector (a method named ``spec`` used to shadow the attribute TorchRL reads)."""
+    Collector (a method named ``spec`` used to shadow the attribute TorchRL reads), with no
+    warning: the env reports ``is_init`` itself, so the collector misses no InitTracker."""
     policy = make()
     env = FleetChargingEnv(num_sites=SITES, seed=0)
     frames = SITES * 10
-    collector = Collector(env, as_td_module(policy), frames_per_batch=frames,
-                          total_frames=2 * frames)
-    try:
-        batches = [b.clone() for b in collector]
-    finally:
-        collector.shutdown()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # TorchRL's FutureWarning about InitTracker included
+        collector = Collector(env, as_td_module(policy), frames_per_batch=frames,
+                              total_frames=2 * frames)
+        try:
+            batches = [b.clone() for b in collector]
+        finally:
+            collector.shutdown()
     assert [b.numel() for b in batches] == [frames, frames]
     for batch in batches:
         flat = batch.reshape(-1)  # the policies' own [B, F] -> [B] form
@@ -146,3 +174,63 @@ def test_load_state_dict_keeps_drawn_site_parameters_that_are_absent():
     assert all(torch.equal(kept[k], fresh[k]) for k in params)  # its own draws, kept
     other.load_state_dict(sd)
     assert all(torch.equal(other.state_dict()[k], v) for k, v in params.items())
+
+
+def test_env_reports_where_episodes_start():
+    """``is_init`` (InitTracker's key): true on a reset site, false after a step; a partial
+    reset marks only the sites it restarts."""
+    env = FleetChargingEnv(num_sites=SITES, seed=0)
+    td = env.reset()
+    assert td["is_init"].shape == (SITES, 1) and td["is_init"].all()
+    td = env.step(as_td_module(RulePolicy())(td))
+    assert not td["next", "is_init"].any()
+    mask = torch.tensor([True, False, True, False]).unsqueeze(-1)
+    td = env.reset(td["next"].clone().set("_reset", mask))
+    assert torch.equal(td["is_init"], mask)
+
+
+def _collected(policy, frames: int = SITES * 16):
+    env = FleetChargingEnv(num_sites=SITES, seed=0)
+    collector = Collector(env, as_td_module(policy), frames_per_batch=frames,
+                          total_frames=frames)
+    try:
+        return next(iter(collector)).clone().reshape(-1)
+    finally:
+        collector.shutdown()
+
+
+@pytest.mark.parametrize("make", [_dqn, _dqn_greedy], ids=["anchored", "greedy"])
+@pytest.mark.parametrize("double", [False, True], ids=["dqn", "double_dqn"])
+def test_dqn_loss_takes_a_wrapped_dqn_policy(make, double):
+    """``as_td_module`` of a DQN policy is a Q-value actor with one site's action spec:
+    TorchRL's DQNLoss builds on it without being told the action space, computes a finite
+    loss on a collected batch, and its gradient reaches the policy's own Q-network."""
+    from torchrl.objectives import DQNLoss
+
+    policy = make()
+    env = FleetChargingEnv(num_sites=SITES, seed=0)
+    module = as_td_module(policy)
+    assert module.spec["action"] == env.action_spec_unbatched
+    batch = _collected(policy)
+    q = policy.qnet(batch["observation"])
+    assert torch.equal(batch["action_value"], q.detach())
+    assert torch.equal(batch["chosen_action_value"].squeeze(-1), q.max(-1).values.detach())
+    assert torch.equal(batch["action"], policy(batch["observation"]))
+    loss = DQNLoss(module, delay_value=True, double_dqn=double)
+    loss.make_value_estimator(gamma=0.9)
+    out = loss(batch)["loss"]
+    assert out.ndim == 0 and torch.isfinite(out) and out > 0
+    out.backward()
+    grads = [p.grad for p in policy.qnet.parameters()]
+    assert all(g is not None and torch.isfinite(g).all() for g in grads)
+    assert any(g.abs().sum() > 0 for g in grads)
+
+
+@pytest.mark.parametrize("make", [m for k, m in POLICIES.items() if not k.startswith("dqn")],
+                         ids=[k for k in POLICIES if not k.startswith("dqn")])
+def test_dqn_loss_refuses_a_policy_without_q_values(make):
+    from torchrl.objectives import DQNLoss
+
+    policy = make()
+    with pytest.raises(ValueError, match=rf"^a {policy.name} policy has no Q-values: DQNLoss"):
+        DQNLoss(as_td_module(policy))

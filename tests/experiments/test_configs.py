@@ -82,3 +82,44 @@ def test_every_experiment_composes_with_every_launcher(name, launcher, target, p
                        overrides=[f"+experiment={name}", f"hydra/launcher={launcher}"])
     assert dcfg.hydra.launcher._target_.endswith(target)
     assert ("n_jobs" in dcfg.hydra.launcher) == (launcher == "local")
+
+
+def test_slurm_preset_fits_the_longest_training_and_activates_the_environment():
+    """A Slurm job outlives the longest training (the generalist's, about 85 min on 2 cores)
+    with margin, and its set-up puts it on the submitting command's Python environment."""
+    import sys
+    from pathlib import Path
+
+    from omegaconf import OmegaConf
+
+    from fleet_torchrl.config import activate_line, register_configs
+
+    if not _plugin("hydra_plugins.hydra_submitit_launcher"):
+        pytest.skip(f"hydra_submitit_launcher is not installed "
+                    f"({PLUGIN_INSTALL['hydra_plugins.hydra_submitit_launcher']})")
+    register_configs()
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        dcfg = compose(config_name="config", return_hydra_config=True,
+                       overrides=["hydra/launcher=slurm"])
+    launcher = OmegaConf.to_container(dcfg.hydra.launcher, resolve=True)
+    assert launcher["timeout_min"] >= 120
+    activate = Path(sys.prefix) / "bin" / "activate"
+    if activate.is_file():  # a virtual environment, as the suite runs in
+        assert launcher["setup"] == [f"source {activate}"]
+    else:
+        assert launcher["setup"] == [f'export PATH={Path(sys.prefix) / "bin"}:"$PATH"']
+    assert launcher["setup"] == [activate_line()]
+
+
+def test_activate_line_sources_a_virtual_environment_or_puts_its_bin_on_path(
+        tmp_path, monkeypatch):
+    import sys
+
+    from fleet_torchrl.config import activate_line
+
+    prefix = tmp_path / "my env"
+    monkeypatch.setattr(sys, "prefix", str(prefix))
+    assert activate_line() == f"export PATH='{prefix}/bin':\"$PATH\""  # no venv: bin/ first
+    (prefix / "bin").mkdir(parents=True)
+    (prefix / "bin" / "activate").write_text("")
+    assert activate_line() == f"source '{prefix}/bin/activate'"  # quoted for the shell
