@@ -380,8 +380,8 @@ def test_policy_files_refuse_corruption_and_non_finite_weights(tmp_path, saved_p
         with pytest.raises(ValueError) as e:
             load_policy_file(tmp_path / f"{name}.pt")
         assert "\n" not in str(e.value), name
-    raw = bytearray(src.read_bytes())  # a byte flipped in the file itself
-    raw[len(raw) // 2] ^= 0xFF
+    raw = bytearray(src.read_bytes())  # a byte flipped in the file itself: a weight's
+    raw[_member_span(bytes(raw), "data/0")[0]] ^= 0xFF  # (not the zip's padding)
     (tmp_path / "raw.pt").write_bytes(bytes(raw))
     with pytest.raises(ValueError):
         load_policy_file(tmp_path / "raw.pt")
@@ -558,3 +558,18 @@ def test_an_exception_is_told_in_one_short_line():
     assert exception_line(RuntimeError("x" * 500)) == "RuntimeError: " + "x" * 200
     assert exception_line(KeyError()) == "KeyError"
     assert exception_line(ValueError("  \n ")) == "ValueError"
+
+
+# ---- integrity of everything a decision depends on
+def _member_span(raw: bytes, name: str) -> tuple[int, int]:
+    """Where the stored bytes of the zip member whose name ends with ``/name`` lie in the
+    file ``raw`` (``torch.save`` stores its members uncompressed)."""
+    import struct
+    import zipfile
+
+    with zipfile.ZipFile(io.BytesIO(raw)) as z:
+        info = next(i for i in z.infolist() if i.filename.endswith("/" + name))
+    h = info.header_offset
+    n, m = struct.unpack("<HH", raw[h + 26:h + 30])
+    start = h + 30 + n + m
+    return start, start + info.file_size

@@ -53,7 +53,7 @@ def test_policy_files_written_before_the_spec_rename_still_load(tmp_path, caplog
     """``Policy.spec()`` became ``policy_spec()`` (it shadowed TorchRL's ``spec`` attribute);
     the file keeps its ``spec`` key, so a file written before the rename, built here by hand
     as the old code wrote it, loads (with a one-line warning: it records no hash of its
-    weights), and new files keep that layout plus the hash."""
+    weights), and new files keep that layout plus the hashes."""
     from fleet_torchrl.agents.dqn import DQNPolicy, NetworkConfig
     from fleet_torchrl.agents.policy_files import FORMAT, policy_bytes
 
@@ -75,4 +75,5 @@ def test_policy_files_written_before_the_spec_rename_still_load(tmp_path, caplog
     obs = torch.rand(200, 3)
     assert torch.equal(back(obs), pol(obs))
     new = torch.load(io.BytesIO(policy_bytes(pol, "dqn")), weights_only=True)
-    assert new.keys() == old.keys() | {"tensors_sha256"} and new["spec"] == old["spec"]
+    assert new.keys() == old.keys() | {"tensors_sha256", "content_sha256"}
+    assert new["spec"] == old["spec"]
