@@ -16,6 +16,7 @@ replay buffer, exploration schedule) and is driven by the one training loop of
 
 from __future__ import annotations
 
+import inspect
 import numbers
 from abc import ABC, abstractmethod
 from collections.abc import Callable
@@ -90,8 +91,13 @@ class Policy(nn.Module):
         """Raise :class:`~fleet_torchrl.utils.checks.ConfigError` (one line naming
         ``spec.<field>``) for a spec read from a file that :meth:`from_policy_spec` must not
         build: an unknown field, a value of the wrong type or out of range. Nothing is
-        allocated here. The base class takes no fields."""
-        check_spec_fields(spec, {})
+        allocated here. The base class checks the fields against its constructor's
+        parameters (names only, those without a default required); a learner's policy
+        checks their types and ranges too."""
+        params = [p for p in inspect.signature(cls.__init__).parameters.values()
+                  if p.name != "self" and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)]
+        check_spec_fields(spec, {p.name: ((object,), "a value") for p in params},
+                          required=tuple(p.name for p in params if p.default is p.empty))
 
     def check_loaded(self) -> str | None:
         """After its weights are loaded from a file: the first entry they hold that this

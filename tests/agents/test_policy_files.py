@@ -247,3 +247,26 @@ def test_a_network_reads_as_many_features_as_its_encoding_gives_on_the_site():
     with pytest.raises(ValueError, match="state=all has 21 features on this site "
                                          r"\(site.n_nodes=20\), the network reads 16"):
         check_policy_fits_site(pol, SiteConfig(n_nodes=20, n_vehicles=4), "p")
+
+
+def test_a_policy_class_without_its_own_spec_check_takes_its_constructors_fields():
+    """A new learner's policy need not write a spec check: its constructor's parameters
+    are the fields a file's spec may hold (those without a default required)."""
+    from torch import nn
+
+    from fleet_torchrl.agents.base import Policy
+    from fleet_torchrl.utils.checks import ConfigError
+
+    class Floor(Policy):
+        def __init__(self, width: int, scale: float = 1.0) -> None:
+            super().__init__()
+            self.lin = nn.Linear(3, width)
+
+    Floor.check_policy_spec({"width": 4})
+    Floor.check_policy_spec({"width": 4, "scale": 2.0})
+    with pytest.raises(ConfigError, match=r"spec\.depth is not a field .*allowed: width, scale"):
+        Floor.check_policy_spec({"width": 4, "depth": 2})
+    with pytest.raises(ConfigError, match=r"spec\.width is missing"):
+        Floor.check_policy_spec({})
+    with pytest.raises(ConfigError, match="spec must be a dict"):
+        Floor.check_policy_spec([4])
