@@ -26,7 +26,7 @@ import yaml
 
 from .agents.base import Policy
 from .agents.policy_files import POLICY_FILE
-from .agents.registry import AGENTS, get_agent, load_policy_file
+from .agents.registry import AGENTS, check_policy_fits_site, get_agent, load_policy_file
 from .sim import SiteConfig, SiteRanges
 
 # the packaged site presets, wherever in the package this module lives
@@ -151,6 +151,7 @@ def make_policy(cfg: Any, device: str | torch.device | None = None) -> Policy:
     if policy.encoding != cfg.state.name:
         raise ValueError(f"{path} was trained on state={policy.encoding}, not "
                          f"state={cfg.state.name}")
+    check_policy_fits_site(policy, cfg.site, path)
     return policy
 
 

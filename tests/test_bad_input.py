@@ -380,8 +380,8 @@ def test_policy_files_refuse_corruption_and_non_finite_weights(tmp_path, saved_p
         with pytest.raises(ValueError) as e:
             load_policy_file(tmp_path / f"{name}.pt")
         assert "\n" not in str(e.value), name
-    raw = bytearray(src.read_bytes())  # a byte flipped in the file itself
-    raw[len(raw) // 2] ^= 0xFF
+    raw = bytearray(src.read_bytes())  # a byte flipped in the file itself: a weight's
+    raw[_member_span(bytes(raw), "data/0")[0]] ^= 0xFF  # (not the zip's padding)
     (tmp_path / "raw.pt").write_bytes(bytes(raw))
     with pytest.raises(ValueError):
         load_policy_file(tmp_path / "raw.pt")
@@ -675,3 +675,265 @@ def test_compare_on_deep_or_overflowing_json_is_one_line_from_the_command_line(n
     assert r.returncode == 2 and len(lines) == 1, r.stderr
     assert lines[0].startswith(f"error: {name}") and "Traceback" not in r.stderr
     assert r.stdout == "" and snapshot(workdir) == before
+
+
+# ---- integrity of everything a decision depends on
+def _member_span(raw: bytes, name: str) -> tuple[int, int]:
+    """Where the stored bytes of the zip member whose name ends with ``/name`` lie in the
+    file ``raw`` (``torch.save`` stores its members uncompressed)."""
+    import struct
+    import zipfile
+
+    with zipfile.ZipFile(io.BytesIO(raw)) as z:
+        info = next(i for i in z.infolist() if i.filename.endswith("/" + name))
+    h = info.header_offset
+    n, m = struct.unpack("<HH", raw[h + 26:h + 30])
+    start = h + 30 + n + m
+    return start, start + info.file_size
+
+
+def _rewrite(src: Path, dst: Path, rehash: bool = False, **fields) -> Path:
+    """Write to ``dst`` the policy file ``src`` with some fields of its saved dict replaced
+    (a callable is given the old value), its hashes left as they were unless ``rehash``
+    (recomputed: what an edit that also forged the hashes, or an older file, looks like)."""
+    from fleet_torchrl.agents.policy_files import (
+        CONTENT_KEY,
+        HASH_KEY,
+        content_sha256,
+        tensors_sha256,
+    )
+
+    bundle = torch.load(src, weights_only=True)
+    for key, value in fields.items():
+        bundle[key] = value(bundle[key]) if callable(value) else value
+    if rehash:
+        bundle[HASH_KEY] = tensors_sha256(bundle["state_dict"])
+        bundle[CONTENT_KEY] = content_sha256(bundle)
+    buf = io.BytesIO()
+    torch.save(bundle, buf)
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    dst.write_bytes(buf.getvalue())
+    return dst
+
+
+def _refused(path: Path, match: str) -> str:
+    from fleet_torchrl.agents import load_policy_file
+
+    with pytest.raises(ValueError, match=match) as e:
+        load_policy_file(path)
+    msg = str(e.value)
+    assert "\n" not in msg and str(path) in msg and len(msg) < 400, msg
+    return msg
+
+
+def _bump(value):
+    """A value one step away from ``value``: another number, another string (one
+    character changed), a dict with its first entry bumped or, if empty, one entry."""
+    if isinstance(value, bool):
+        return not value
+    if isinstance(value, (int, float)):
+        return value + 1
+    if isinstance(value, str):
+        return chr(ord(value[0]) ^ 1) + value[1:]
+    if isinstance(value, dict):
+        if not value:
+            return {"x": 1}
+        key = sorted(value)[0]
+        return {**value, key: _bump(value[key])}
+    raise TypeError(value)
+
+
+SAVED_KINDS = ["tabular", "dqn_partial", "search", "imitation", "generalist", "generalist_dqn"]
+
+
+@pytest.mark.parametrize("name", SAVED_KINDS)
+def test_a_changed_spec_or_metadata_is_refused_by_the_hash(name, tmp_path, saved_policies):
+    """Every field a decision depends on is covered by the file's hash: its spec (each
+    field), its metadata, its kind and its encoding, edited in the saved dict or as one
+    flipped byte of the file, are refused with one line."""
+    from fleet_torchrl.agents import load_policy_file, save_policy
+
+    src = saved_policies / name / "policy.pt"
+    policy = load_policy_file(src)  # the file as saved loads
+    kind = torch.load(src, weights_only=True)["kind"]
+    src = save_policy(tmp_path / "meta" / "policy.pt", policy, kind,
+                      meta={"seed": 3, "note": "trained"})[0]
+    bundle = torch.load(src, weights_only=True)
+    hashed = "its content does not match its hash .spec or metadata changed"
+    edits = {f"spec.{k}": {"spec": {**bundle["spec"], k: _bump(v)}}
+             for k, v in bundle["spec"].items()}
+    edits["spec (added field)"] = {"spec": {**bundle["spec"], "extra": 1}}
+    edits["meta.seed"] = {"meta": {**bundle["meta"], "seed": 4}}
+    edits["meta.note"] = {"meta": {**bundle["meta"], "note": "trainee"}}
+    edits["kind"] = {"kind": "dqn" if kind != "dqn" else "imitation"}
+    edits["encoding"] = {"encoding": "all"}
+    for what, change in edits.items():
+        msg = _refused(_rewrite(src, tmp_path / f"{what}.pt", **change), hashed)
+        assert "retrain" in msg, what
+    # one flipped bit in each character of the spec's and metadata's text in the file
+    raw = src.read_bytes()
+    start, end = _member_span(raw, "data.pkl")
+    tokens = [b"partial", b"trained", b"seed", *(k.encode() for k in bundle["spec"])]
+    flipped = 0
+    for token in tokens:
+        at = raw.index(token, start, end)
+        for i in range(at, at + len(token)):
+            bad = bytearray(raw)
+            bad[i] ^= 0x01
+            (tmp_path / "flip.pt").write_bytes(bytes(bad))
+            _refused(tmp_path / "flip.pt", "")
+            flipped += 1
+    assert flipped >= 15
+
+
+def test_an_edited_encoding_is_refused_in_one_line(tmp_path, saved_policies):
+    """``spec.encoding`` edited (the hashes forged to match, as an older file would have
+    none): refused at load, where it gave a matrix-shape traceback at evaluation; and an
+    encoding of another width on the declared side too."""
+    src = saved_policies / "dqn_partial" / "policy.pt"
+    spec = lambda enc: lambda s: {**s, "encoding": enc}  # noqa: E731
+    _refused(_rewrite(src, tmp_path / "a.pt", spec=spec("all")),
+             "does not match its hash")
+    _refused(_rewrite(src, tmp_path / "b.pt", rehash=True, spec=spec("all")),
+             "spec.encoding='all' disagrees with the file's declared encoding 'partial'")
+    _refused(_rewrite(src, tmp_path / "c.pt", rehash=True, spec=spec("all"), encoding="all"),
+             "the encoding's feature count must match the network's input width: "
+             "state=all has 6 to 63 features")
+    _refused(_rewrite(src, tmp_path / "d.pt", rehash=True, spec=spec("partial_site"),
+                      encoding="partial_site"),
+             "state=partial_site has 6 features, the network reads spec.n_obs=3")
+    _refused(_rewrite(src, tmp_path / "e.pt", rehash=True, encoding="bogus"),
+             "the encoding must be a known one")
+    _refused(_rewrite(src, tmp_path / "f.pt", rehash=True, encoding=["partial"]),
+             "its encoding must be a string")
+
+
+@pytest.mark.parametrize("kind", [["dqn"], {"dqn": 1}, 3, None, "rule", "nonexistent"])
+def test_a_kind_that_names_no_learner_is_refused_in_one_line(kind, tmp_path, saved_policies):
+    src = saved_policies / "dqn_partial" / "policy.pt"
+    _refused(_rewrite(src, tmp_path / "k.pt", kind=kind), "does not match its hash")
+    msg = _refused(_rewrite(src, tmp_path / "k2.pt", rehash=True, kind=kind),
+                   "kind must be a string naming a known policy kind")
+    assert "tabular, dqn, search, imitation" in msg
+
+
+def test_a_spec_too_large_is_refused_before_anything_is_allocated(tmp_path, saved_policies,
+                                                                   monkeypatch):
+    """A spec asking for width 20000 (800 million weights at depth 3) is refused without
+    building a real network: the only networks built are on the ``meta`` device (shapes,
+    no memory), and the refusal names the fields; one that would fit is still refused
+    because the stored tensors are not of its shapes."""
+    import time
+
+    from fleet_torchrl.agents import dqn
+
+    built = []
+    real = dqn.relu_mlp
+
+    def watch(*args, **kw):
+        built.append(torch.get_default_device().type)
+        return real(*args, **kw)
+
+    monkeypatch.setattr(dqn, "relu_mlp", watch)
+    src = saved_policies / "dqn_partial" / "policy.pt"
+    net = lambda **kw: lambda s: {**s, "network": {**s["network"], **kw}}  # noqa: E731
+    t0 = time.perf_counter()
+    _refused(_rewrite(src, tmp_path / "w.pt", rehash=True, spec=net(width=20000, depth=3)),
+             r"asks for 800,160,002 parameters.*spec\.network\.width and spec\.network\.depth")
+    _refused(_rewrite(src, tmp_path / "w1.pt", rehash=True, spec=net(width=20000)),
+             r"qnet\.0\.\w+ is torch.float32 \[8.* in its weights but torch.float32 \[20000")
+    _refused(_rewrite(src, tmp_path / "w2.pt", rehash=True, spec=net(width=10**9)),
+             r"spec\.network\.width=1000000000 is invalid")
+    assert time.perf_counter() - t0 < 5.0
+    assert built and set(built) == {"meta"}, built
+    for change, match in [(net(width="8"), r"spec\.network\.width='8' is invalid"),
+                          (net(depth=2.5), r"spec\.network\.depth=2\.5 is invalid"),
+                          (net(bogus=1), r"spec\.network\.bogus is not a setting"),
+                          (lambda s: {**s, "n_obs": -3}, r"spec\.n_obs=-3 is invalid"),
+                          (lambda s: {**s, "n_obs": True}, r"spec\.n_obs=True is invalid"),
+                          (lambda s: {**s, "bogus": 1}, r"spec\.bogus is not a field"),
+                          (lambda s: {**s, "anchor": "x"}, r"spec\.anchor='x' is invalid"),
+                          (lambda s: [s], "its spec must be a dict")]:
+        _refused(_rewrite(src, tmp_path / "s.pt", rehash=True, spec=change), match)
+
+
+@pytest.mark.parametrize("action", [5, -1, 2])
+def test_an_action_table_outside_pass_and_charge_is_refused(action, tmp_path, saved_policies):
+    """A search table with action 5 or -1 evaluated as "always charge"; a tabular Q-table
+    with more than two actions (a column for action 5) or a negative visit count: refused
+    at load, naming the file and the entry; a search table like it is not saved."""
+    from fleet_torchrl.agents import save_policy
+    from fleet_torchrl.agents.search import SearchPolicy
+
+    def set_cell(state):
+        state = {k: v.clone() for k, v in state.items()}
+        state["charge"][17] = action
+        return state
+
+    src = saved_policies / "search" / "policy.pt"
+    _refused(_rewrite(src, tmp_path / "s.pt", rehash=True, state_dict=set_cell),
+             rf"charge\[17\] = {action}: an action table holds 0 \(pass\) or 1 \(charge\)")
+    _refused(_rewrite(src, tmp_path / "s2.pt", state_dict=set_cell), "do not match the hash")
+    pol = SearchPolicy("table")
+    pol.charge[3] = action
+    with pytest.raises(ValueError, match=rf"charge\[3\] = {action}.*nothing was written"):
+        save_policy(tmp_path / "never" / "policy.pt", pol, "search")
+    assert not (tmp_path / "never").exists()
+
+    tab = saved_policies / "tabular" / "policy.pt"
+    wide = lambda s: {**s, "q": torch.zeros(200, abs(action) + 2)}  # noqa: E731
+    _refused(_rewrite(tab, tmp_path / "t.pt", rehash=True, state_dict=wide),
+             rf"q is torch.float32 \[200, {abs(action) + 2}\] in its weights but "
+             r"torch.float32 \[200, 2\] by its spec")
+    neg = lambda s: {**s, "visits": s["visits"].clone().fill_(-abs(action))}  # noqa: E731
+    _refused(_rewrite(tab, tmp_path / "t2.pt", rehash=True, state_dict=neg),
+             rf"visits\[0, 0\] = {-abs(action)}: a visit count is >= 0")
+    as_float = lambda s: {**s, "charge": s["charge"].double()}  # noqa: E731
+    _refused(_rewrite(src, tmp_path / "s3.pt", rehash=True, state_dict=as_float),
+             r"charge is torch.float64 \[200\] in its weights but torch.int64")
+
+
+def _bad_policy_files(w: Path, saved: Path) -> None:
+    """Bad policy files in the working directory ``w`` for the command cases below."""
+    src = saved / "dqn_partial" / "policy.pt"
+    net = lambda **kw: lambda s: {**s, "network": {**s["network"], **kw}}  # noqa: E731
+    _rewrite(src, w / "meta_changed" / "policy.pt", meta={"seed": 9})
+    _rewrite(src, w / "encoding" / "policy.pt", rehash=True,
+             spec=lambda s: {**s, "encoding": "all"})
+    _rewrite(src, w / "kind" / "policy.pt", rehash=True, kind=["dqn"])
+    _rewrite(src, w / "wide" / "policy.pt", rehash=True, spec=net(width=20000, depth=3))
+    table = saved / "search" / "policy.pt"
+    five = lambda s: {**s, "charge": s["charge"].clone().fill_(5)}  # noqa: E731
+    _rewrite(table, w / "table5" / "policy.pt", rehash=True, state_dict=five)
+    from fleet_torchrl.agents import save_policy
+    from fleet_torchrl.agents.imitation import ImitationPolicy
+
+    save_policy(w / "all16" / "policy.pt", ImitationPolicy(16, "all", 8, 1), "imitation")
+
+
+POLICY_COMMANDS = [
+    (["agent=dqn", "agent.policy=meta_changed"], "its content does not match its hash"),
+    (["agent=dqn", "agent.policy=encoding"], "disagrees with the file's declared encoding"),
+    (["agent=dqn", "agent.policy=kind"], "kind must be a string naming a known policy kind"),
+    (["agent=dqn", "agent.policy=wide"], "spec.network.width and spec.network.depth"),
+    (["agent=search", "agent.policy=table5/policy.pt"], "charge[0] = 5"),
+    (["agent=imitation", "state=all", "agent.policy=all16", "site.n_nodes=10"],
+     "state=all has 11 features on this site (site.n_nodes=10), the network reads 16"),
+]
+
+
+@pytest.mark.parametrize("args,msg", POLICY_COMMANDS, ids=[a[-1] for a, _ in POLICY_COMMANDS])
+def test_evaluate_refuses_a_bad_policy_file_in_one_line(args, msg, workdir, saved_policies,
+                                                        command, capsys):
+    _bad_policy_files(workdir, saved_policies)
+    test_a_command_refuses_bad_input_in_one_line_and_writes_nothing(
+        "evaluate", args, msg, workdir, command, capsys)
+
+
+def test_the_evaluate_command_line_refuses_a_changed_policy_file(workdir, saved_policies):
+    """What a user sees: ``python -m fleet_torchrl.evaluate agent=dqn agent.policy=<a file
+    whose spec was edited>`` says one line and exits 2."""
+    _bad_policy_files(workdir, saved_policies)
+    test_real_command_lines_say_one_line_and_exit_2(
+        ["fleet_torchrl.evaluate", "agent=dqn", "agent.policy=encoding"],
+        "disagrees with the file's declared encoding", workdir)

@@ -16,6 +16,8 @@ replay buffer, exploration schedule) and is driven by the one training loop of
 
 from __future__ import annotations
 
+import inspect
+import numbers
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from typing import Any, ClassVar
@@ -29,8 +31,12 @@ from ..env.encodings import get_encoding
 from ..sim import D, Site, SiteState
 from ..sim.fused import KernelPolicy
 from ..sim.rollout import DecisionContext
+from ..utils.checks import ConfigError
 
 PASS, CHARGE = 0, 1
+INT = ((numbers.Integral,), "an integer")
+REAL = ((numbers.Real,), "a number")
+STR = ((str,), "a string")
 
 
 class Policy(nn.Module):
@@ -81,6 +87,50 @@ class Policy(nn.Module):
         """This policy as a TensorDict module (:func:`as_td_module`): a :class:`PolicyModule`;
         a policy with Q-values returns a Q-value actor over ``action_spec``."""
         return PolicyModule(self, obs_key, action_key)
+
+    #: the spec fields that size its tensors (named where a spec asks for too many)
+    size_fields: ClassVar[str] = "spec"
+
+    @classmethod
+    def check_policy_spec(cls, spec: dict[str, Any]) -> None:
+        """Raise :class:`~fleet_torchrl.utils.checks.ConfigError` (one line naming
+        ``spec.<field>``) for a spec read from a file that :meth:`from_policy_spec` must not
+        build: an unknown field, a value of the wrong type or out of range. Nothing is
+        allocated here. The base class checks the fields against its constructor's
+        parameters (names only, those without a default required); a learner's policy
+        checks their types and ranges too."""
+        params = [p for p in inspect.signature(cls.__init__).parameters.values()
+                  if p.name != "self" and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)]
+        check_spec_fields(spec, {p.name: ((object,), "a value") for p in params},
+                          required=tuple(p.name for p in params if p.default is p.empty))
+
+    def check_loaded(self) -> str | None:
+        """After its weights are loaded from a file: the first entry they hold that this
+        policy cannot decide with (an action outside {0, 1}, a negative count), described
+        in a few words, or None."""
+        return None
+
+
+def check_spec_fields(spec: Any, allowed: dict[str, tuple[tuple[type, ...], str]],
+                      required: tuple[str, ...] = (), path: str = "spec") -> None:
+    """Raise :class:`~fleet_torchrl.utils.checks.ConfigError` unless ``spec`` is a dict whose
+    keys are among ``allowed`` (``{key: (types, the types in words)}``; a bool is no
+    number), each of its type, with every ``required`` key present."""
+    if not isinstance(spec, dict):
+        raise ConfigError(f"{path} must be a dict, not {type(spec).__name__}")
+    for key in spec:
+        if key not in allowed:
+            names = ", ".join(allowed) or "none"
+            raise ConfigError(f"{path}.{str(key)[:40]} is not a field of this policy's spec "
+                              f"(allowed: {names})")
+    for key in required:
+        if key not in spec:
+            raise ConfigError(f"{path}.{key} is missing")
+    for key, value in spec.items():
+        types, words = allowed[key]
+        ok = isinstance(value, types) and (bool in types or not isinstance(value, bool))
+        if not ok:
+            raise ConfigError(f"{path}.{key}={repr(value)[:40]} is invalid: allowed {words}")
 
 
 def relu_mlp(n_in: int, n_out: int, width: int, depth: int) -> nn.Module:

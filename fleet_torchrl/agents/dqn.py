@@ -49,7 +49,15 @@ from torchrl.modules import EGreedyModule, QValueActor, SafeSequential
 from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate
 
 from ..env import MDPConfig, discount_exponent
-from .base import Learner, Policy, relu_mlp
+from ..utils.checks import (
+    ConfigError,
+    check_choice,
+    check_known_fields,
+    check_range,
+    check_types,
+    deferred_validation,
+)
+from .base import INT, REAL, STR, Learner, Policy, check_spec_fields, relu_mlp
 from .baselines import HeuristicPolicy
 from .config import ANCHORS, DQNAgentConfig, NetworkConfig
 
@@ -90,6 +98,32 @@ class DQNPolicy(Policy):
                        anchor_params={"threshold": b.threshold, "upper": b.upper,
                                       "others_below": b.others_below})
         return out
+
+    size_fields = "spec.network.width and spec.network.depth"
+
+    @classmethod
+    def check_policy_spec(cls, spec: dict[str, Any]) -> None:
+        check_spec_fields(spec, {"network": ((dict,), "a dict of network settings"),
+                                 "n_obs": INT, "encoding": STR, "anchor": STR,
+                                 "anchor_margin": REAL,
+                                 "anchor_params": ((dict, type(None)), "a dict or null")},
+                          required=("network", "n_obs", "encoding"))
+        net = spec["network"]
+        check_known_fields(NetworkConfig, net, "spec.network")
+        with deferred_validation():
+            cfg = NetworkConfig(**net)
+        check_types(cfg, "spec.network")
+        cfg.validate("spec.network")
+        check_range("spec.n_obs", spec["n_obs"], 1, 100_000)
+        check_choice("spec.anchor", spec.get("anchor", "none"), ANCHORS)
+        margin = spec.get("anchor_margin", 0.0)
+        if not margin >= 0:  # an infinite margin is the heuristic itself
+            raise ConfigError(f"spec.anchor_margin={margin} is invalid: allowed a number >= 0")
+        params = spec.get("anchor_params") or {}
+        check_spec_fields(params, dict.fromkeys(("threshold", "upper", "others_below"), REAL),
+                          path="spec.anchor_params")
+        for key, value in params.items():
+            check_range(f"spec.anchor_params.{key}", value, 0.0, 100.0)
 
     @classmethod
     def from_policy_spec(cls, spec: dict[str, Any]) -> DQNPolicy:

@@ -72,7 +72,8 @@ from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
 from ..sim import Site, SiteState, rng
 from ..sim.rollout import DecisionContext
-from .base import Learner, Policy, guard_actions, relu_mlp
+from ..utils.checks import ConfigError, check_range
+from .base import INT, REAL, STR, Learner, Policy, check_spec_fields, guard_actions, relu_mlp
 from .baselines import HeuristicPolicy
 from .config import ImitationAgentConfig
 from .planner import PlannerPolicy
@@ -121,6 +122,19 @@ class ImitationPolicy(Policy):
         if self.defer_margin > 0:  # files without it decide with the network alone
             spec["defer_margin"] = self.defer_margin
         return spec
+
+    size_fields = "spec.hidden and spec.depth"
+
+    @classmethod
+    def check_policy_spec(cls, spec: dict[str, Any]) -> None:
+        check_spec_fields(spec, {"n_obs": INT, "encoding": STR, "hidden": INT, "depth": INT,
+                                 "defer_margin": REAL})
+        check_range("spec.n_obs", spec.get("n_obs", 3), 1, 100_000)
+        check_range("spec.hidden", spec.get("hidden", 128), 1, 4096)
+        check_range("spec.depth", spec.get("depth", 3), 0, 16)
+        margin = spec.get("defer_margin", 0.0)
+        if not 0.0 <= margin < math.inf:
+            raise ConfigError(f"spec.defer_margin={margin} is invalid: allowed a number >= 0")
 
     def logits(self, obs: Tensor) -> Tensor:
         """``[B]`` logit of *charge*."""

@@ -56,7 +56,8 @@ from ..sim import SiteConfig
 from ..sim import rng as _rng
 from ..sim.fused import TABLE, THRESHOLD, KernelPolicy
 from ..sim.rollout import run_sites
-from .base import Learner, Policy
+from ..utils.checks import check_choice, check_range
+from .base import INT, STR, Learner, Policy, check_spec_fields
 from .config import POLICY_CLASSES, SearchAgentConfig
 from .tabular import N_SOC_BINS, n_cells, state_index
 from .threshold import ThresholdPolicy, threshold_actions, threshold_row
@@ -115,6 +116,28 @@ class SearchPolicy(Policy):
     def policy_spec(self) -> dict[str, Any]:
         return {"policy_class": self.policy_class, "hidden": self.hidden, "depth": self.depth,
                 "n_tc": self.n_tc}
+
+    size_fields = "spec.hidden, spec.depth and spec.n_tc"
+
+    @classmethod
+    def check_policy_spec(cls, spec: dict[str, Any]) -> None:
+        check_spec_fields(spec, {"policy_class": STR, "hidden": INT, "depth": INT,
+                                 "n_tc": INT})
+        check_choice("spec.policy_class", spec.get("policy_class", "table"), POLICY_CLASSES)
+        check_range("spec.hidden", spec.get("hidden", 16), 1, 4096)
+        check_range("spec.depth", spec.get("depth", 2), 0, 16)
+        check_range("spec.n_tc", spec.get("n_tc", 2), 2, 64)
+
+    def check_loaded(self) -> str | None:
+        """An action table holds 0 (pass) or 1 (charge) in every cell."""
+        if self.policy_class != "table":
+            return None  # a network charges iff its output is positive, thresholds compare
+        bad = ((self.charge != 0) & (self.charge != 1)).nonzero()
+        if bad.numel():
+            i = int(bad[0, 0])
+            return (f"charge[{i}] = {int(self.charge[i])}: an action table holds 0 (pass) or "
+                    "1 (charge) only")
+        return None
 
     def params(self) -> Tensor:
         """The flat parameters the search distribution is over."""

@@ -57,6 +57,15 @@ class TabularQPolicy(Policy):
         self.register_buffer("q", torch.zeros(N_STATES, 2))
         self.register_buffer("visits", torch.zeros(N_STATES, 2, dtype=torch.int64))
 
+    def check_loaded(self) -> str | None:
+        """Its table has two actions (pass, charge) by its shape; its visit counts are
+        counts."""
+        bad = (self.visits < 0).nonzero()
+        if bad.numel():
+            s, a = (int(v) for v in bad[0])
+            return f"visits[{s}, {a}] = {int(self.visits[s, a])}: a visit count is >= 0"
+        return None
+
     def q_values(self, obs: Tensor) -> Tensor:
         return self.q[state_index(obs)]
 
