@@ -262,7 +262,11 @@ def _compose_example(command: str, args: list[str]) -> None:
     keys = [o.key_or_group for o in parsed]
     register_configs()
     name = command if command in TOOL_SCHEMAS else "config"
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+    # a tool with a folder of its own (compare: tool_conf/, so that completion offers only
+    # its settings) composes from there
+    own = CONF_DIR.parent / "tool_conf"
+    conf_dir = own if (own / f"{name}.yaml").is_file() else CONF_DIR
+    with initialize_config_dir(config_dir=str(conf_dir), version_base="1.3"):
         for combo in itertools.product(*choices):
             overrides = [o if "=" in o else f"{k}={o}" for k, o in zip(keys, combo,
                                                                      strict=True)]
