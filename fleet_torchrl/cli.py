@@ -166,13 +166,7 @@ def preflight(job_name: str, cfg: Config, run_dir: str | None) -> None:
     """The command's own checks before it starts (``preflight(cfg, run_dir)`` of the module
     ``fleet_torchrl.<job name>``, if it has one): every path it will write, a checkpoint to
     resume. Raises what :data:`~fleet_torchrl.utils.cli.USER_ERRORS` lists."""
-    import importlib
-
-    try:
-        module = importlib.import_module(f"{__package__}.{job_name}")
-    except ImportError:  # an app of another package (a test's) has no checks here
-        return
-    check = getattr(module, "preflight", None)
+    check = command_hook(job_name, "preflight")
     if check is not None:
         check(cfg, run_dir)
 
@@ -213,13 +207,30 @@ class _JobConfig:
             HydraConfig.instance().set_config(self._saved)
 
 
+def command_hook(job_name: str, hook: str) -> Callable[..., Any] | None:
+    """The function ``hook`` of the module ``fleet_torchrl.<job name>``, if there is one:
+    ``preflight``, ``output_paths`` (what a job writes outside its run folder), ``claim``
+    (what a single run holds before Hydra writes its run folder)."""
+    import importlib
+
+    try:
+        module = importlib.import_module(f"{__package__}.{job_name}")
+    except ImportError:  # an app of another package (a test's) has none
+        return None
+    return getattr(module, hook, None)
+
+
 def _check_job(config: Any, dir_key: str, subdir_key: str | None = None,
-               label: str = "", run_preflight: bool = True) -> Config | None:
+               label: str = "", run_preflight: bool = True,
+               outputs: list[tuple[str, str, str]] | None = None,
+               claim: bool = False) -> Config | None:
     """Validate one job's composed config and run its command's preflight, the job's run
     folder included, before anything is written; a bad value ends here in one line and exit
     code 2. Returns the typed config if it can be handed to the task as it is (one that
     refers to the run folder, resolved here ahead of ``run_job``, is validated again
-    there), None otherwise."""
+    there), None otherwise. ``outputs`` collects ``(what, absolute path, label)`` of what
+    the job writes outside its run folder (its command's ``output_paths``); ``claim``: hold
+    the run folder now (its command's ``claim``), a single run's only."""
     import copy
 
     from omegaconf import OmegaConf
@@ -243,6 +254,12 @@ def _check_job(config: Any, dir_key: str, subdir_key: str | None = None,
             cfg = handed if handed is not None else to_config(without_hydra(job_cfg))
             if run_preflight:
                 preflight(str(job_cfg.hydra.job.name), cfg, job.run_dir)
+            paths = command_hook(str(job_cfg.hydra.job.name), "output_paths")
+            if outputs is not None and paths is not None:
+                outputs += [(what, os.path.abspath(p), label) for what, p in paths(cfg)]
+            hold = command_hook(str(job_cfg.hydra.job.name), "claim")
+            if claim and hold is not None and job.run_dir is not None:
+                hold(cfg, job.run_dir)
     except OmegaConfBaseException:  # resolvable in the run only: the task validates
         return None
     except USER_ERRORS as e:  # a bad value: one line, exit code 2, no run folder
@@ -259,13 +276,15 @@ class ValidateFirst(_callback_base()):
     outputs, a checkpoint to resume), before Hydra creates a run folder or writes
     ``.hydra/``, so bad input ends in one line and exit code 2 with nothing written (a
     refused resume does not first overwrite the run's ``.hydra/overrides.yaml``). A single
-    run's typed config is then handed to the task (:func:`validated`). A multirun checks
-    every job this way before launching any (Hydra's basic sweeper: the jobs it will make;
-    another sweeper: its base config)."""
+    run then holds its run folder where its command says so (``claim``: a training's lock),
+    still before ``.hydra/`` is written, and its typed config is handed to the task
+    (:func:`validated`). A multirun checks every job this way before launching any (Hydra's
+    basic sweeper: the jobs it will make; another sweeper: its base config), and refuses two
+    jobs that would write one output (a training's publish folder, an ``eval.out``)."""
 
     def on_run_start(self, config: Any, **kwargs: Any) -> None:
         _VALIDATED.clear()
-        cfg = _check_job(config, "hydra.run.dir")
+        cfg = _check_job(config, "hydra.run.dir", claim=True)
         if cfg is not None:
             _VALIDATED.append(cfg)
 
@@ -284,6 +303,7 @@ class ValidateFirst(_callback_base()):
             _check_job(config, "hydra.sweep.dir", run_preflight=False)
             return
         loader = GlobalHydra.instance().config_loader()
+        outputs: list[tuple[str, str, str]] = []
         for num, overrides in enumerate(jobs[0]):
             job_cfg = loader.load_sweep_config(config, list(overrides))
             from omegaconf import open_dict
@@ -293,7 +313,23 @@ class ValidateFirst(_callback_base()):
                 job_cfg.hydra.job.num = num
             label = " ".join(o for o in overrides
                              if o.split("=", 1)[0].lstrip("+~") in jobs[1]) or f"job {num}"
-            _check_job(job_cfg, "hydra.sweep.dir", "hydra.sweep.subdir", label)
+            _check_job(job_cfg, "hydra.sweep.dir", "hydra.sweep.subdir", label, outputs=outputs)
+        shared_output(outputs)
+
+
+def shared_output(outputs: list[tuple[str, str, str]]) -> None:
+    """Exit with one line and code 2 if two jobs of a multirun would write one output
+    (``(what, absolute path, job label)`` each): only the last to finish would survive."""
+    seen: dict[str, tuple[str, str]] = {}
+    for what, path, label in outputs:
+        if path in seen:
+            first_what, first = seen[path]
+            print(f"error: jobs {first} and {label} would both write {what} {path}: one "
+                  f"would replace the other's; give each job its own {first_what}"
+                  + (" (train.out_dir, or no train.out_dir: each seed publishes to its own "
+                     "folder)" if first_what == "publish folder" else ""), file=sys.stderr)
+            sys.exit(2)
+        seen[path] = (what, label)
 
 
 def hydra_command(task: Callable[[Any], Any], config_name: str = "config",

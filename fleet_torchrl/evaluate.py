@@ -6,6 +6,15 @@
 JSON (summary, per-simulation records, resolved config, seed, git commit, package versions)
 plus a per-simulation CSV beside it. Without ``eval.out`` both go to the Hydra run directory
 (``outputs/evaluate/<agent>_<state>_<site>/<time>_<pid>/eval.json``).
+
+An ``eval.out`` that exists is checked before the evaluation starts: a file that is not an
+evaluation result (an unrelated JSON, a policy's ``train_summary.json``) or no regular file
+at all (a FIFO) is refused and kept; an existing result is replaced only with
+``eval.overwrite=true``. Two jobs of a multirun on one ``eval.out`` (``-m agent=rule,heuristic
+eval.out=x.json``) are refused before either starts. The CSV is written first and the JSON,
+which names it and records its hash, last: an interrupted write never leaves a JSON beside
+another run's CSV unnoticed (:func:`~fleet_torchrl.evaluation.results.check_result_pair`), and
+its temp files go with the next write of the same result.
 """
 
 from __future__ import annotations
@@ -27,14 +36,20 @@ log = logging.getLogger("fleet_torchrl.evaluate")  # to stdout and the Hydra job
 
 def preflight(cfg: Config, run_dir: str | Path | None) -> None:
     """Before the run folder exists: the result path (and its CSV beside it) can be
-    written, and a saved policy to evaluate exists and loads (its hash, finite weights, its
-    agent and state)."""
+    written and holds nothing it would replace unasked (``eval.overwrite``), and a saved
+    policy to evaluate exists and loads (its hash, finite weights, its agent and state)."""
     from .evaluation.results import check_result_path
     from .store import make_policy
 
     if cfg.eval.out:
-        check_result_path(cfg.eval.out)
+        check_result_path(cfg.eval.out, overwrite=cfg.eval.overwrite)
     make_policy(cfg, device="cpu")  # a baseline is built from its config: nothing to read
+
+
+def output_paths(cfg: Config) -> list[tuple[str, Path]]:
+    """What a run of ``cfg`` writes outside its run folder: ``eval.out`` if set (two jobs of
+    a multirun must not share it)."""
+    return [("eval.out", Path(cfg.eval.out))] if cfg.eval.out else []
 
 
 def run(cfg: Config, out: str | Path | None) -> dict:
@@ -43,8 +58,8 @@ def run(cfg: Config, out: str | Path | None) -> dict:
     from .store import make_policy, site_label
     from .utils.runinfo import run_info
 
-    if out is not None:
-        check_result_path(out)  # before the simulation, not after it
+    if out is not None:  # before the simulation, not after it
+        check_result_path(out, overwrite=cfg.eval.overwrite if cfg.eval.out else None)
     policy = make_policy(cfg)
     e = cfg.eval
     result = evaluate_with(policy, cfg.site, e, name=cfg.agent.name)

@@ -1,9 +1,11 @@
 """Where policies are published and found: policy names, run folders, saved-policy lookup.
 
-A training run publishes its policy under ``<table.policies_dir>/<name>/`` (``make train``)
-or ``<table.policies_dir>/<name>/seed<s>/`` (``make table``, several seeds), ``name`` being
-unique to what was trained (:func:`policy_name`: agent, state, objective, variant, site), so
-that no run replaces the policy of another recipe. Evaluations and experiments find them
+A training run publishes its policy under ``<table.policies_dir>/<name>/seed<s>/`` (``make
+train`` and ``make table`` alike), ``name`` being unique to what was trained
+(:func:`policy_name`: agent, state, objective, variant, site) and ``s`` its seed, so that no
+run replaces the policy of another recipe or seed (and a folder that already holds one is
+refused: :mod:`fleet_torchrl.training.publish`). Folders ``<name>/policy.pt`` of earlier
+versions are still found. Evaluations and experiments find them
 again by name (:func:`saved_policy_path`, :func:`load_policies`, :func:`make_policy`).
 
 This module sits above the agents (it reads whole configs, duck-typed: ``cfg.agent``,
@@ -102,14 +104,16 @@ def site_label(site: SiteConfig) -> str:
 
 
 def default_policy_dir(cfg: Any) -> Path:
-    """Where a training run of ``cfg`` saves its policy, and where evaluation looks for it."""
+    """Where a training run of ``cfg`` publishes its policy: ``train.out_dir`` if set, else
+    ``<table.policies_dir>/<name>/seed<seed>`` (:func:`seed_dir`)."""
     if cfg.train.out_dir:
         return Path(cfg.train.out_dir)
-    return Path(cfg.table.policies_dir) / policy_name(cfg)
+    return seed_dir(cfg.table.policies_dir, policy_name(cfg), cfg.seed)
 
 
 def seed_dir(root: str | Path, name: str, seed: int) -> Path:
-    """Folder of the policy ``name`` trained with ``seed`` (``make table`` trains several)."""
+    """Folder of the policy ``name`` trained with ``seed`` (``make train`` and ``make table``
+    publish there)."""
     return Path(root) / name / f"seed{seed}"
 
 
@@ -135,7 +139,7 @@ def make_policy(cfg: Any, device: str | torch.device | None = None) -> Policy:
         path = Path(cfg.agent.policy)
     elif cfg.train.out_dir:
         path = Path(cfg.train.out_dir)
-    else:  # make train's <name>/policy.pt, else the lowest seed make table trained
+    else:  # <name>/policy.pt of earlier versions, else the lowest seed trained
         path = saved_policy_path(cfg.table.policies_dir, policy_name(cfg))
         other = site_suffix(cfg.site)
         if other and not path.is_file():  # names carry the site: say how to cross sites

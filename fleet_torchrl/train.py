@@ -8,9 +8,21 @@ Logs to TensorBoard under the Hydra run directory
 (``outputs/train/<agent>_<state>_<site>/<time>_<pid>/tb``) and to its ``train.log``, keeps the
 best policy by periodic evaluation in ``<run dir>/policy.pt``, checkpoints to
 ``<run dir>/checkpoint.ckpt``, and at a successful end publishes the policy with its summary
-to ``results/policies/<name>/`` (or ``train.out_dir``). A killed run continues with
-``resume=true hydra.run.dir=<its run dir>``. The trainings of ``make table`` are jobs of this
-task too (:mod:`fleet_torchrl.table`).
+(``policy.pt``, ``train_summary.json``) to ``results/policies/<name>/seed<seed>/`` (or
+``train.out_dir``), so ``fleet-train -m seed=0,1`` publishes each seed to its own folder.
+
+Nothing published is replaced: a publish folder that already holds a policy (of this same
+training or another) is refused before the run starts, unless ``train.overwrite=true``
+(:mod:`fleet_torchrl.training.publish`); two jobs of a multirun that would publish to one
+folder are refused before either starts (:class:`~fleet_torchrl.cli.ValidateFirst`). A run
+whose best policy failed sites (failure rate above 0 on its evaluation set) publishes nothing
+to the default folder: its policy stays in ``<run dir>/policy.pt`` and the log says so in one
+line (an explicit ``train.out_dir``, such as each of ``make table``'s trainings, gets it with
+its failure rate in the summary). The run folder is held (``<run dir>/.lock``) before Hydra
+writes its ``.hydra/``, so a second training, or a resume, started in a folder where one runs
+is refused without touching it. A killed run continues with ``resume=true
+hydra.run.dir=<its run dir>``. The trainings of ``make table`` are jobs of this task too
+(:mod:`fleet_torchrl.table`).
 """
 
 from __future__ import annotations
@@ -34,11 +46,13 @@ def preflight(cfg: Config, run_dir: str | Path | None) -> None:
     """What is checked before Hydra writes the run folder (:class:`~fleet_torchrl.cli.
     ValidateFirst`) and again before a job trains: the agent is a learner, the folder its
     policy is published to can be written (not only after the whole training), no policy file
-    is named for it to ignore (``agent.policy``), and a resume finds its checkpoint, of the same
-    settings (a refused resume writes nothing)."""
+    is named for it to ignore (``agent.policy``), a resume finds its checkpoint, of the same
+    settings (a refused resume writes nothing), and the publish folder holds no policy this
+    run would replace (:func:`~fleet_torchrl.training.publish.check_publish`)."""
     from .agents.registry import AGENTS, get_agent
     from .store import default_policy_dir
     from .training.checkpoint import CHECKPOINT, check_resumable
+    from .training.publish import check_publish
     from .utils.checks import ConfigError
     from .utils.paths import check_output
 
@@ -56,6 +70,25 @@ def preflight(cfg: Config, run_dir: str | Path | None) -> None:
                  default_policy_dir(cfg), "dir")
     if cfg.resume and run_dir is not None:
         check_resumable(Path(run_dir) / CHECKPOINT, cfg)
+    check_publish(cfg, default_policy_dir(cfg), run_dir)
+
+
+def output_paths(cfg: Config) -> list[tuple[str, Path]]:
+    """What a run of ``cfg`` writes outside its run folder: its publish folder (two jobs of
+    a multirun must not share it)."""
+    from .store import default_policy_dir
+
+    return [("publish folder", default_policy_dir(cfg))]
+
+
+def claim(cfg: Config, run_dir: str | Path) -> None:
+    """Hold the run folder for this process (:func:`~fleet_torchrl.utils.paths.hold_run_dir`)
+    before Hydra writes its ``.hydra/`` into it: a second training there, or a resume of a
+    run that still trains, is refused before it writes anything."""
+    from .utils.paths import hold_run_dir
+
+    Path(run_dir).mkdir(parents=True, exist_ok=True)
+    hold_run_dir(run_dir)
 
 
 def train(cfg: Config, run_dir: str | Path) -> dict:
@@ -64,14 +97,19 @@ def train(cfg: Config, run_dir: str | Path) -> dict:
     import torch
 
     from .training import Trainer
+    from .utils.paths import release_run_dir
     from .utils.runinfo import run_info, write_json
 
-    preflight(cfg, run_dir)  # a refused resume must not overwrite the run's run_info.json
-    if cfg.train.threads:
-        torch.set_num_threads(cfg.train.threads)
-    write_json(Path(run_dir) / "run_info.json", run_info(cfg, seed=cfg.seed))
-    trainer = Trainer(cfg, run_dir)
-    summary = trainer.run()
+    try:
+        preflight(cfg, run_dir)  # a refused resume must not overwrite the run's run_info.json
+        claim(cfg, run_dir)  # held already when ValidateFirst checked this run
+        if cfg.train.threads:
+            torch.set_num_threads(cfg.train.threads)
+        write_json(Path(run_dir) / "run_info.json", run_info(cfg, seed=cfg.seed))
+        trainer = Trainer(cfg, run_dir)
+        summary = trainer.run()
+    finally:
+        release_run_dir(run_dir)
     best = summary["best"] or {}
     log.info(f"{summary['name']}: {summary['rounds']} rounds, {summary['episodes']} episodes, "
              f"{summary['wall_s']:.0f} s; best eval {best.get('trips', float('nan')):.1f} trips "

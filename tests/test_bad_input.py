@@ -937,3 +937,240 @@ def test_the_evaluate_command_line_refuses_a_changed_policy_file(workdir, saved_
     test_real_command_lines_say_one_line_and_exit_2(
         ["fleet_torchrl.evaluate", "agent=dqn", "agent.policy=encoding"],
         "disagrees with the file's declared encoding", workdir)
+
+
+# ---- publishing never overwrites (issue 48, item 1; concurrency tests of item 7)
+# a tabular run that fails no evaluation site (published) and one that fails them all (not)
+PUB_OK = [*TINY, "train.eval_ticks=40", "train.eval_seed=4"]
+PUB_FAILS = TINY
+EVAL = ["eval.n_sims=4", "eval.ticks=50", "eval.progress=false", "eval.backend=eager"]
+
+
+def _one_error_line(err: str) -> str:
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: "), err
+    return lines[0]
+
+
+def _sha(path: Path) -> str:
+    import hashlib
+
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+@pytest.mark.slow
+def test_seeds_publish_to_their_own_folders_and_no_run_replaces_a_policy(tmp_path, monkeypatch,
+                                                                        command, capsys):
+    """``fleet-train -m seed=0,1`` publishes each seed to ``<name>/seed<s>/``; a later run
+    onto a published policy (other settings, or the same training) is refused before it
+    starts, in one line naming the folder, and the policy's bytes stay; two jobs of a
+    multirun on one ``train.out_dir`` are refused before either starts;
+    ``train.overwrite=true`` replaces."""
+    from fleet_torchrl import train
+
+    r = subprocess.run([sys.executable, "-m", "fleet_torchrl.train", "-m", *PUB_OK,
+                        "seed=0,1", "hydra.launcher.n_jobs=1"], cwd=tmp_path,
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    pol = tmp_path / "results" / "policies" / "tabular"
+    assert sorted(p.name for p in pol.iterdir()) == ["seed0", "seed1"]
+    for seed in (0, 1):
+        summary = json.loads((pol / f"seed{seed}" / "train_summary.json").read_text())
+        assert summary["published"] and summary["fingerprint"]["seed"] == seed
+        assert summary["policy_sha256"] == _sha(pol / f"seed{seed}" / "policy.pt")
+    sha = _sha(pol / "seed0" / "policy.pt")
+    monkeypatch.chdir(tmp_path)
+    before = snapshot(tmp_path)
+    capsys.readouterr()
+    for extra, msg in ((["mdp.p_f=2000"], "of another training (mdp.p_f"),
+                       ([], "of this same training")):
+        assert command(train.main, *PUB_OK, *extra) == 2
+        line = _one_error_line(capsys.readouterr().err)
+        assert msg in line and str(Path("results/policies/tabular/seed0")) in line, line
+        assert "train.overwrite=true" in line
+        assert snapshot(tmp_path) == before  # no run folder either
+    assert _sha(pol / "seed0" / "policy.pt") == sha
+    assert command(train.main, "-m", *PUB_OK, "seed=3,4", "train.out_dir=shared") == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert "seed=3 and seed=4" in line and str(tmp_path / "shared") in line, line
+    assert snapshot(tmp_path) == before
+    assert command(train.main, *PUB_OK, "mdp.p_f=2000", "train.overwrite=true") == 0
+    summary = json.loads((pol / "seed0" / "train_summary.json").read_text())
+    assert summary["fingerprint"]["mdp"]["p_f"] == 2000.0
+    assert summary["policy_sha256"] == _sha(pol / "seed0" / "policy.pt") != sha
+
+
+@pytest.mark.slow
+def test_a_run_that_failed_sites_publishes_nothing(tmp_path, monkeypatch, command):
+    """A run whose best policy failed evaluation sites keeps it in its run folder; the log
+    says so in one line; nothing appears under the policies folder."""
+    from fleet_torchrl import train
+
+    monkeypatch.chdir(tmp_path)
+    run = tmp_path / "run"
+    assert command(train.main, *PUB_FAILS, f"hydra.run.dir={run}") == 0
+    assert not (tmp_path / "results").exists()
+    summary = json.loads((run / "train_summary.json").read_text())
+    assert summary["published"] is False and summary["best"]["failure_rate"] > 0
+    assert summary["policy"] == str(run / "policy.pt")
+    assert summary["policy_sha256"] == _sha(run / "policy.pt")
+    said = [ln for ln in (run / "train.log").read_text().splitlines() if "not published" in ln]
+    assert len(said) == 1 and "failed" in said[0] and str(run / "policy.pt") in said[0], said
+
+
+def test_two_evaluations_on_one_output_are_refused_before_either_starts(workdir, command,
+                                                                       capsys):
+    from fleet_torchrl import evaluate
+
+    before = snapshot(workdir)
+    assert command(evaluate.main, "-m", "agent=rule,heuristic", "eval.out=x.json", *EVAL) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert "agent=rule and agent=heuristic" in line and "x.json" in line, line
+    assert snapshot(workdir) == before
+
+
+@pytest.mark.parametrize("target", ["unrelated", "summary", "fifo", "csv"])
+def test_an_eval_out_that_is_no_result_is_refused_and_kept(target, workdir, command, capsys):
+    """An ``eval.out`` holding an unrelated JSON, a published policy's
+    ``train_summary.json`` or a FIFO, or beside a CSV that is no result's, is refused in one
+    line; the file stays as it was."""
+    from fleet_torchrl import evaluate
+
+    path = workdir / "out.json"
+    if target == "unrelated":
+        path.write_text('{"my": "notes"}')
+    elif target == "summary":
+        path.write_text(json.dumps({"name": "tabular", "best": {"trips": 1.0},
+                                    "policy_sha256": "ab" * 32}))
+    elif target == "fifo":
+        os.mkfifo(path)
+    else:
+        (workdir / "out.csv").write_text("a,b\n1,2\n")
+    before = snapshot(workdir)
+    kept = None if target == "fifo" else (path if path.exists() else workdir / "out.csv")
+    content = kept.read_bytes() if kept else None
+    assert command(evaluate.main, "agent=rule", "eval.out=out.json", *EVAL,
+                   "eval.overwrite=true") == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert "eval.out=" in line and "out." in line, line
+    assert snapshot(workdir) == before
+    if kept:
+        assert kept.read_bytes() == content
+
+
+def test_an_existing_result_is_replaced_only_with_eval_overwrite(workdir, command, capsys):
+    from fleet_torchrl import evaluate
+    from fleet_torchrl.evaluation import check_result_pair
+
+    assert command(evaluate.main, "agent=rule", "eval.out=r.json", *EVAL) == 0
+    first = (workdir / "r.json").read_bytes()
+    assert check_result_pair(workdir / "r.json")["csv"] == "r.csv"
+    capsys.readouterr()
+    before = snapshot(workdir)
+    assert command(evaluate.main, "agent=rule", "eval.out=r.json", *EVAL, "eval.seed=1") == 2
+    assert "eval.overwrite=true replaces it" in _one_error_line(capsys.readouterr().err)
+    assert snapshot(workdir) == before and (workdir / "r.json").read_bytes() == first
+    assert command(evaluate.main, "agent=rule", "eval.out=r.json", *EVAL, "eval.seed=1",
+                   "eval.overwrite=true") == 0
+    assert check_result_pair(workdir / "r.json")["seed"] == 1
+
+
+def test_eval_overwrite_is_a_typed_setting():
+    from fleet_torchrl.evaluation import EvalConfig
+    from fleet_torchrl.training import TrainConfig
+
+    assert EvalConfig().overwrite is False and TrainConfig().overwrite is False
+    with pytest.raises(ConfigError, match=r"eval\.overwrite"):
+        EvalConfig(overwrite="yes")
+    with pytest.raises(ConfigError, match=r"train\.overwrite"):
+        TrainConfig(overwrite=1)
+
+
+@pytest.mark.slow
+def test_a_training_in_a_held_folder_is_refused_before_hydra_writes(tmp_path, monkeypatch,
+                                                                    command, capsys):
+    """A second training, or a resume, started in a run folder where a training runs (held
+    by another process) is refused in one line before Hydra rewrites the folder's
+    ``.hydra/*.yaml`` and before ``run_info.json``: every byte stays."""
+    from fleet_torchrl import train
+
+    monkeypatch.chdir(tmp_path)
+    run = tmp_path / "run"
+    common = [*PUB_FAILS, f"hydra.run.dir={run}"]
+    assert command(train.main, *common) == 0
+    files = [run / ".hydra" / n for n in ("config.yaml", "overrides.yaml", "hydra.yaml")]
+    files.append(run / "run_info.json")
+    content = {f: f.read_bytes() for f in files}
+    code = ("import sys, time; from fleet_torchrl.utils.paths import hold_run_dir; "
+            "hold_run_dir(sys.argv[1]); print('held', flush=True); time.sleep(600)")
+    holder = subprocess.Popen([sys.executable, "-c", code, str(run)], stdout=subprocess.PIPE,
+                              text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        before = snapshot(tmp_path)
+        capsys.readouterr()
+        for extra in (["seed=7", "train.out_dir=elsewhere"], ["resume=true"]):
+            assert command(train.main, *common, *extra) == 2
+            line = _one_error_line(capsys.readouterr().err)
+            assert f"in use by process {holder.pid}" in line, line
+            assert snapshot(tmp_path) == before
+            assert {f: f.read_bytes() for f in files} == content
+    finally:
+        holder.kill()
+        holder.wait()
+
+
+_STALL = """
+import os, sys, time
+real = os.fsync
+def fsync(fd):
+    real(fd)
+    name = os.readlink(f"/proc/self/fd/{fd}")
+    if os.path.basename(name).startswith("." + os.environ["STALL_ON"] + "."):
+        print("stalled", flush=True)
+        time.sleep(600)
+os.fsync = fsync
+from fleet_torchrl.evaluate import main
+sys.argv = ["fleet-evaluate", *sys.argv[1:]]
+main()
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not Path("/proc/self/fd").is_dir(), reason="needs /proc/self/fd")
+def test_an_evaluation_killed_mid_write_leaves_no_temp_file_and_no_mixed_pair(tmp_path,
+                                                                              monkeypatch,
+                                                                              command):
+    """``kill -9`` of an evaluation while it writes its result: killed between its new CSV
+    and its JSON, the old JSON beside the new CSV is detected (never silently used); the
+    next evaluation of the same result leaves no ``.tmp`` behind and a consistent pair."""
+    from fleet_torchrl import evaluate
+    from fleet_torchrl.evaluation import check_result_pair
+
+    monkeypatch.chdir(tmp_path)
+    out = ["agent=rule", "eval.out=r.json", *EVAL]
+    assert command(evaluate.main, *out) == 0
+    old_json = (tmp_path / "r.json").read_bytes()
+    for stall_on in ("r.json", "r.csv"):
+        p = subprocess.Popen([sys.executable, "-c", _STALL, *out, "eval.seed=1",
+                              "eval.overwrite=true", "hydra.run.dir=killed"],
+                             cwd=tmp_path, stdout=subprocess.PIPE, text=True,
+                             env={**os.environ, "STALL_ON": stall_on})
+        try:
+            for line in p.stdout:  # until the write stalls (the process waits there)
+                if line.strip() == "stalled":
+                    break
+            else:
+                pytest.fail("the evaluation ended before it wrote its result")
+        finally:
+            p.kill()  # SIGKILL: no cleanup runs
+            p.wait()
+        assert list(tmp_path.glob(f".{stall_on}.*.tmp"))  # what the kill left
+        assert (tmp_path / "r.json").read_bytes() == old_json
+        if stall_on == "r.json":  # the new CSV beside the old JSON: told apart
+            with pytest.raises(ValueError, match="does not belong to"):
+                check_result_pair(tmp_path / "r.json")
+        assert command(evaluate.main, *out, "eval.seed=2", "eval.overwrite=true") == 0
+        assert not list(tmp_path.glob("*.tmp")) and not list(tmp_path.glob(".*.tmp"))
+        assert check_result_pair(tmp_path / "r.json")["seed"] == 2
+        old_json = (tmp_path / "r.json").read_bytes()

@@ -71,11 +71,11 @@ def test_every_readme_training_command_publishes_to_its_own_recipes_folder():
         assert folders.setdefault(folder, recipe) == recipe, (
             f"{cmd!r} publishes to {folder}, the folder of another recipe")
     generalist = next(f for c, (f, _) in where.items() if "agent.anchor=heuristic" in c)
-    assert generalist == "results/policies/dqn_partial_throughput_anchored_randomized"
+    assert generalist == "results/policies/dqn_partial_throughput_anchored_randomized/seed0"
     assert where["agent=dqn mdp.reward=throughput"][0] == \
-        "results/policies/dqn_partial_throughput"
+        "results/policies/dqn_partial_throughput/seed0"
     assert where["agent=search site=five_vehicles"][0] == \
-        "results/policies/search_five_vehicles"
+        "results/policies/search_five_vehicles/seed0"
     # the evaluations the README shows of learned policies find a folder a command fills
     learned = [o for o in _readme_commands("evaluate")
                if any(a in o for a in ("agent=dqn", "agent=tabular", "agent=search"))

@@ -23,6 +23,7 @@ class EvalConfig:
     ticks: int = 10000
     seed: int = 0
     out: str | None = None  # result JSON path; the per-simulation CSV is written beside it
+    overwrite: bool = False  # replace an existing result at ``out`` (else the run is refused)
     device: str = "cpu"
     chunk: int = 256  # ticks of closure draws generated at once
     progress: bool = True

@@ -17,6 +17,7 @@ import torch
 from torch import Tensor
 
 from ..sim import Site
+from ..utils.checks import ConfigError
 from ..utils.paths import check_output
 from ..utils.runinfo import csv_text, file_sha256, read_json, write_json, write_text
 
@@ -427,37 +428,81 @@ def record_rows(result: dict[str, Any]) -> list[dict[str, Any]]:
                                                  rec["ticks_survived"], strict=True))]
 
 
-def check_result_path(path: str | Path, setting: str = "eval.out") -> Path:
+def check_result_path(path: str | Path, setting: str = "eval.out",
+                      overwrite: bool | None = None) -> Path:
     """Fail early, in one line naming ``setting``, if a result cannot be written to ``path``
     (and its ``.csv``): wrong suffix, a folder in the way, a folder that cannot be created or
-    written, a pseudo file system (:func:`fleet_torchrl.utils.paths.check_output`)."""
+    written, a pseudo file system (:func:`fleet_torchrl.utils.paths.check_output`).
+
+    With ``overwrite`` given (a command's ``eval.overwrite``), what is there already is
+    checked too: a path that is no regular file (a FIFO, a device), a file that is not an
+    evaluation result (an unrelated JSON, a policy's ``train_summary.json``) or a CSV beside
+    it that is not a result's rows is refused; an existing result is refused unless
+    ``overwrite`` is true. A result CSV without its JSON (a write killed between the two) may
+    be replaced."""
     path = check_output(setting, path, "file", suffix=".json")
-    check_output(setting, path.with_suffix(".csv"), "file")
+    csv_path = path.with_suffix(".csv")
+    check_output(setting, csv_path, "file")
+    if overwrite is None:
+        return path
+    for p in (path, csv_path):
+        if os.path.lexists(p) and not p.is_file():
+            raise ConfigError(f"{setting}={path} is invalid: {p} exists and is not a regular "
+                              "file (a FIFO, a device, a dangling link); choose another path")
+    if path.is_file():
+        try:
+            load_result(path)
+        except ValueError as e:
+            why = str(e).removeprefix(f"{path} ")
+            if not why.startswith("is "):  # not even text
+                why = f"is not an evaluation result ({why})"
+            raise ConfigError(f"{setting}={path} is invalid: the file there {why}; it is "
+                              "kept: choose another path") from None
+        if not overwrite:
+            raise ConfigError(f"{setting}={path} already holds an evaluation result: it is "
+                              "kept; eval.overwrite=true replaces it, or choose another path")
+    elif csv_path.is_file() and not _is_result_csv(csv_path):
+        raise ConfigError(f"{setting}={path} is invalid: {csv_path} beside it is not an "
+                          "evaluation's CSV; it is kept: choose another path")
     return path
+
+
+def _is_result_csv(path: Path) -> bool:
+    """Whether ``path`` starts with the header :func:`save_result` writes."""
+    try:
+        with open(path, encoding="utf-8", errors="replace") as f:
+            return f.readline().rstrip("\r\n") == ",".join(CSV_FIELDS)
+    except OSError:
+        return False
 
 
 def save_result(result: dict[str, Any], path: str | Path) -> tuple[Path, Path]:
     """Write the per-simulation CSV (same stem, ``.csv``), then the result JSON, each
-    atomically. The JSON is the unit's commit: it records the CSV's SHA-256, so a CSV left
-    by a killed or a concurrent writer beside another run's JSON is told apart
-    (:func:`check_result_pair`)."""
+    atomically. The JSON is the unit's commit: it names its CSV (``csv``) and records its
+    SHA-256 (``csv_sha256``), so a CSV left by a killed or a concurrent writer beside
+    another run's JSON is told apart (:func:`check_result_pair`)."""
     path = Path(path)
     if path.suffix != ".json":
         raise ValueError(f"a result path must end in .json, got {path}")
     csv_path = path.with_suffix(".csv")
     text = csv_text(record_rows(result), CSV_FIELDS)
     write_text(csv_path, text)  # the hash is of what this writer wrote, not read back
-    write_json(path, {**result, "csv_sha256": hashlib.sha256(text.encode()).hexdigest()})
+    write_json(path, {**result, "csv": csv_path.name,
+                      "csv_sha256": hashlib.sha256(text.encode()).hexdigest()})
     return path, csv_path
 
 
 def check_result_pair(path: str | Path) -> dict[str, Any]:
     """The result at ``path`` after checking that the CSV beside it is the one it was
-    written with; a mismatched pair raises ``ValueError``."""
+    written with (the name the JSON gives it and its hash); a mismatched pair raises
+    ``ValueError``. What every reader of a result's CSV calls first."""
     path = Path(path)
     res = load_result(path)
     csv_path = path.with_suffix(".csv")
     want = res.get("csv_sha256")
+    if res.get("csv", csv_path.name) != csv_path.name:
+        raise ValueError(f"{path} names its CSV {res.get('csv')!r}, not {csv_path.name} (a "
+                         "renamed or copied file?): evaluate again")
     if want is None or not csv_path.is_file() or file_sha256(csv_path) != want:
         raise ValueError(f"{csv_path} does not belong to {path} (a killed or concurrent write"
                          "?): evaluate again")

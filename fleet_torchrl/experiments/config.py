@@ -16,7 +16,8 @@ from ..utils.checks import (
 )
 
 # overrides a recipe may not set: the table sets them for each training seed
-TABLE_SETS = ("seed", "resume", "train.out_dir", "train.device", "train.progress")
+TABLE_SETS = ("seed", "resume", "train.out_dir", "train.overwrite", "train.device",
+              "train.progress")
 
 
 @dataclass

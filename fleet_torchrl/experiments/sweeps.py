@@ -211,6 +211,7 @@ def point_training(cfg: Config, run_cfg: Config, label: str) -> tuple[Policy, di
         start = [start, teacher]
     out = Path(cfg.sweep.search_dir) / label / digest([result_fingerprint(run_cfg), start])
     run_cfg.train.out_dir = str(out)
+    run_cfg.train.overwrite = True  # the sweep's own folder: a policy there is a killed run's
     if not reusable(out, run_cfg):
         print(f"[sweep] {label}: training -> {out}", flush=True)
         Trainer(run_cfg, out / "run").run()

@@ -37,6 +37,7 @@ from ..evaluation import evaluate_with, gain_over, save_result, seed_interval
 from ..sim import SiteConfig
 from ..store import load_policies, seed_dir, site_preset, site_suffix
 from ..training import CHECKPOINT, checkpoint_mismatch, result_fingerprint
+from ..training.publish import holds_policy
 from ..utils.checks import ConfigError
 from ..utils.plotting import plot_gain_boxplot, plot_learning_curves, save_figure
 from ..utils.runinfo import file_sha256, read_json, run_info, write_csv, write_json, write_text
@@ -197,6 +198,12 @@ def plan_training(name: str, seed: int, cfg: Config, progress: bool = False
     if not cfg.table.retrain and reusable(out_dir, run_cfg):
         print(f"[table] reusing {out_dir / POLICY_FILE}", flush=True)
         return None
+    # the table owns its seed folders: a policy of other settings there (a recipe changed,
+    # table.retrain=true) is replaced, said here, not silently
+    replace = holds_policy(out_dir)
+    if replace:
+        print(f"[table] {out_dir} holds a policy of other settings: training again, the new "
+              "one replaces it", flush=True)
     job = TableJob(recipe_folder(cfg, name), seed, [])
     run_dir = Path(cfg.table.runs_dir) / job.folder
     resume = (run_dir / CHECKPOINT).exists() and not cfg.table.retrain
@@ -217,7 +224,7 @@ def plan_training(name: str, seed: int, cfg: Config, progress: bool = False
         print(f"[table] resuming {run_dir}", flush=True)
     # progress bars of trainings that run side by side would interleave: one bar at most
     job.overrides = [*overrides, f"train.progress={str(progress).lower()}",
-                     f"resume={str(resume).lower()}",
+                     f"resume={str(resume).lower()}", f"train.overwrite={str(replace).lower()}",
                      f"hydra.sweep.dir={cfg.table.runs_dir}", f"hydra.sweep.subdir={job.folder}"]
     return job
 

@@ -28,7 +28,8 @@ UNREADABLE = (OSError, ValueError, KeyError, EOFError, RuntimeError, zipfile.Bad
               zlib.error, pickle.UnpicklingError)
 
 # settings a resumed run may change: they steer the run, not what it learns
-RUN_CONTROL = {"out_dir", "device", "threads", "tensorboard", "progress", "checkpoint_every"}
+RUN_CONTROL = {"out_dir", "overwrite", "device", "threads", "tensorboard", "progress",
+               "checkpoint_every"}
 
 
 def training_fingerprint(cfg: Config) -> dict[str, Any]:

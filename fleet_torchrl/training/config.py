@@ -26,7 +26,10 @@ class TrainConfig:
                                # | guarded
     patience: int = 0  # evaluations without improvement before stopping (0 = never stop)
     checkpoint_every: int = 5  # rounds between checkpoints
-    out_dir: str | None = None  # best policy goes here; default results/policies/<run name>
+    # best policy goes here; default <table.policies_dir>/<run name>/seed<seed>
+    out_dir: str | None = None
+    # replace a policy already published in the publish folder (else such a run is refused)
+    overwrite: bool = False
     device: str = "cpu"
     threads: int = 0  # torch CPU threads; 0 = torch's default
     tensorboard: bool = True

@@ -28,7 +28,9 @@ Every ``eval_every`` rounds the greedy policy is evaluated with the protocol of 
 fixed common-random-numbers set (``train.eval_*``), next to the rule on the same set. Policies
 rank by failure rate first, then by :func:`~fleet_torchrl.training.progress.selection_score`
 (``train.select``); the best policy is saved at once (atomically) into the run folder, and
-published with its summary to ``train.out_dir`` only when the run ends (:meth:`Trainer.promote`).
+published with its summary to its publish folder (``train.out_dir``, by default
+``<table.policies_dir>/<name>/seed<s>``) only when the run ends, never over another policy
+and, to the default folder, only if it failed no site (:meth:`Trainer.promote`).
 Training stops after ``patience`` evaluations without improvement. A checkpoint (learner and
 its extra components, best policy, environment counters, RNG states, progress) is written
 atomically every ``checkpoint_every`` rounds and at the end.
@@ -356,15 +358,46 @@ class Trainer:
 
     def promote(self, summary: dict[str, Any]) -> dict[str, Any]:
         """At the successful end of a run: publish the best policy to ``out_dir``
-        (``results/policies/<name>/`` by default) and its summary beside it, each written
-        atomically; the summary records the policy file's hash, so a reader can tell a
-        matching pair (``experiments.table.reusable``) from one left by a killed or a
-        concurrent run. While a run trains, ``out_dir`` is never touched."""
+        (``results/policies/<name>/seed<s>/`` by default) and its summary beside it, each
+        written atomically; the summary records the policy file's hash, so a reader can tell
+        a matching pair (``experiments.table.reusable``) from one left by a killed or a
+        concurrent run. While a run trains, ``out_dir`` is never touched.
+
+        Nothing is published (``published: false`` in the run folder's summary, one log
+        line saying why; the policy stays in the run folder) when the best policy failed
+        sites and ``out_dir`` is the default one, or when ``out_dir`` came to hold another
+        policy while this run trained (checked under :func:`~fleet_torchrl.training.
+        publish.publish_lock`; ``train.overwrite=true`` replaces it)."""
+        from .publish import check_publish, publish_lock
+
         if self.cfg.train.defer != "none":
             summary = {**summary, "deferral": self.calibrate_deferral()}
-        summary = {**summary, "policy_sha256": self.save_best(self.out_dir / POLICY_FILE)}
+        rate = (summary.get("best") or {}).get("failure_rate", 0.0)
+        if rate > 0 and not self.cfg.train.out_dir:
+            return self.keep_in_run_dir(summary, f"its best policy failed {rate:.1%} of the "
+                                        "evaluation sites")
+        with publish_lock(self.out_dir):
+            try:
+                check_publish(self.cfg, self.out_dir, self.run_dir)
+            except ValueError:
+                return self.keep_in_run_dir(summary, "another run published a policy there "
+                                            "while this one trained (train.overwrite=true "
+                                            "replaces it)")
+            summary = {**summary, "published": True,
+                       "policy_sha256": self.save_best(self.out_dir / POLICY_FILE)}
+            write_json(self.run_dir / "train_summary.json", summary)
+            write_json(self.out_dir / "train_summary.json", summary)
+        return summary
+
+    def keep_in_run_dir(self, summary: dict[str, Any], why: str) -> dict[str, Any]:
+        """End a run without publishing: its best policy and summary stay in the run folder,
+        and one log line says so and why."""
+        path = self.run_dir / POLICY_FILE
+        summary = {**summary, "published": False, "policy": str(path),
+                   "policy_sha256": self.save_best(path)}
         write_json(self.run_dir / "train_summary.json", summary)
-        write_json(self.out_dir / "train_summary.json", summary)
+        log.warning("%s: not published to %s: %s; the policy stays in %s", self.name,
+                    self.out_dir, why, path)
         return summary
 
     def calibrate_deferral(self) -> dict[str, Any]:

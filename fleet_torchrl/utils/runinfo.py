@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import functools
+import glob
 import hashlib
 import json
 import os
 import platform
+import re
 import subprocess
 import sys
 import tempfile
@@ -42,20 +44,74 @@ def current_umask() -> int:
     return mask
 
 
+def _host_key() -> str:
+    """This machine in a temp file's name (8 hex digits of its host name): a writer on
+    another machine sharing the file system is never judged by this machine's processes."""
+    return hashlib.sha256(platform.node().encode()).hexdigest()[:8]
+
+
+def temp_prefix(path: str | os.PathLike, pid: int | None = None) -> str:
+    """The start of the name of a temp file :func:`atomic_write` writes ``path`` through:
+    ``.<name>.<pid>-<host key>.`` (then ``mkstemp``'s random part and ``.tmp``)."""
+    return f".{Path(path).name}.{os.getpid() if pid is None else pid}-{_host_key()}."
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OSError):  # another user's process (or no way to tell): alive
+        return True
+    return True
+
+
+def remove_stale_temps(folder: str | os.PathLike, name: str | None = None) -> list[Path]:
+    """Remove the temp files in ``folder`` (of the target ``name`` only, if given) whose
+    writer is gone: written by :func:`atomic_write` in a process of this machine that no
+    longer runs (killed mid-write, ``kill -9``). A writer that still runs, one of another
+    machine and any other file stay. Returns what was removed."""
+    folder = Path(folder)
+    key = _host_key()
+    pattern = re.compile(r"\.(?P<name>.+)\.(?P<pid>\d+)-(?P<host>[0-9a-f]{8})\.[^.]+\.tmp")
+    removed = []
+    try:
+        entries = list(folder.glob(f".{glob.escape(name) if name else '*'}.*.tmp"))
+    except OSError:
+        return removed
+    for p in entries:
+        m = pattern.fullmatch(p.name)
+        if m is None or m["host"] != key or (name is not None and m["name"] != name):
+            continue
+        pid = int(m["pid"])
+        if pid == os.getpid() or _alive(pid):
+            continue
+        try:
+            p.unlink()
+            removed.append(p)
+        except OSError:
+            pass
+    return removed
+
+
 def atomic_write(path: str | os.PathLike, write: Callable[[Any], None], mode: str = "w") -> Path:
     """Write via ``write(fileobj)`` to a temp file in the same folder, then rename over ``path``.
 
-    A crash mid-write leaves the previous file intact and no partial file behind. The file
-    gets the mode any new file of the user gets (``0o666`` less the umask): ``mkstemp``
-    makes its temp file ``0o600``, which would leave results unreadable to the rest of a team
-    sharing a file system. A failure to write raises :class:`WriteError` naming ``path``.
+    A crash mid-write leaves the previous file intact and no partial file behind; a temp
+    file left by a killed writer (``kill -9``: no cleanup runs) carries its process id in
+    its name (:func:`temp_prefix`), and the next write of the same target removes it
+    (:func:`remove_stale_temps`). The file gets the mode any new file of the user gets
+    (``0o666`` less the umask): ``mkstemp`` makes its temp file ``0o600``, which would leave
+    results unreadable to the rest of a team sharing a file system. A failure to write
+    raises :class:`WriteError` naming ``path``.
     """
     path = Path(path)
     if path.exists() and path.is_dir():
         raise IsADirectoryError(f"cannot write {path}: it is a directory")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        remove_stale_temps(path.parent, path.name)
+        fd, tmp = tempfile.mkstemp(prefix=temp_prefix(path), suffix=".tmp", dir=path.parent)
     except OSError as e:
         raise WriteError(f"cannot write {path}: {e.strerror or e}") from None
     try:

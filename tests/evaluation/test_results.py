@@ -220,3 +220,35 @@ def test_paired_gain_interval_is_a_paired_t_interval(tmp_path, capsys, command):
         (tmp_path / f"{name}.json").write_text(json.dumps(r))
     assert command(main, f"result={tmp_path / 'a.json'}", f"baseline={tmp_path / 'b.json'}") == 0
     assert f"(95% CI ± {want:.2f})" in capsys.readouterr().out
+
+
+def test_a_result_names_its_csv_and_a_renamed_pair_is_told_apart(tmp_path):
+    from fleet_torchrl.evaluation import check_result_pair
+
+    res = evaluate_policy(RulePolicy(), site_cfg=SiteConfig(), n_sims=3, ticks=50, seed=0)
+    js, cs = save_result(res, tmp_path / "a.json")
+    assert json.loads(js.read_text())["csv"] == "a.csv"
+    (tmp_path / "b.json").write_bytes(js.read_bytes())  # a copy beside a copied CSV
+    (tmp_path / "b.csv").write_bytes(cs.read_bytes())
+    with pytest.raises(ValueError, match="names its CSV 'a.csv'"):
+        check_result_pair(tmp_path / "b.json")
+
+
+def test_temp_files_of_a_gone_writer_go_with_the_next_write(tmp_path):
+    """A temp file carries its writer's process id: the next write of the same target
+    removes the ones whose process is gone, never a live writer's nor another target's."""
+    import os
+    import subprocess
+    import sys
+
+    from fleet_torchrl.utils.runinfo import temp_prefix, write_json
+
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    dead = tmp_path / f"{temp_prefix(tmp_path / 'r.json', gone.pid)}abc.tmp"
+    live = tmp_path / f"{temp_prefix(tmp_path / 'r.json', os.getppid())}abc.tmp"
+    other = tmp_path / f"{temp_prefix(tmp_path / 'q.json', gone.pid)}abc.tmp"
+    for p in (dead, live, other):
+        p.write_text("partial")
+    write_json(tmp_path / "r.json", {"a": 1})
+    assert not dead.exists() and live.exists() and other.exists()

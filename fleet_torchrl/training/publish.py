@@ -1,0 +1,113 @@
+"""Publishing a trained policy without replacing another.
+
+A finished run publishes its best policy and summary (``policy.pt``, ``train_summary.json``)
+to its publish folder: ``<table.policies_dir>/<name>/seed<s>/`` by default, else
+``train.out_dir``. A folder that already holds a policy is never replaced silently:
+
+* before the run trains (:func:`check_publish`, the command's preflight), a folder holding the
+  policy of this very training (same settings and seed: the summary's fingerprint and the
+  policy file's hash match) or of another one is refused in one line naming the folder and
+  what to do: another seed, another ``train.out_dir``, or ``train.overwrite=true``;
+* when the run ends (:meth:`~fleet_torchrl.training.trainer.Trainer.promote`) the folder is
+  checked again under an exclusive lock on it (:func:`publish_lock`): a policy another run
+  published meanwhile stays, and this run's stays in its run folder.
+
+A run's own folder (``train.out_dir`` equal to the run folder) is the run's: its best policy
+is saved there while it trains.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+from ..agents.policy_files import POLICY_FILE
+from ..utils.checks import ConfigError
+from ..utils.runinfo import file_sha256, read_json
+from .checkpoint import fingerprint_diff, result_fingerprint
+
+Config = Any  # the root ``Config``, duck-typed: this layer sits below it
+
+SUMMARY = "train_summary.json"
+
+
+def holds_policy(folder: str | os.PathLike) -> bool:
+    """Whether ``folder`` holds a published policy or its summary (a dangling link counts)."""
+    return any(os.path.lexists(Path(folder) / name) for name in (POLICY_FILE, SUMMARY))
+
+
+def published_diff(folder: str | os.PathLike, cfg: Config) -> list[str] | None:
+    """How the policy published in ``folder`` differs from a training of ``cfg``: an empty
+    list for the very same training (its summary records ``cfg``'s result fingerprint and
+    the policy file's hash), ``key: old -> new`` lines for another one, None when nothing is
+    published there."""
+    folder = Path(folder)
+    if not holds_policy(folder):
+        return None
+    try:
+        rec = read_json(folder / SUMMARY)
+    except (OSError, ValueError):
+        return ["its train_summary.json is missing or unreadable"]
+    if not isinstance(rec, dict) or not isinstance(rec.get("fingerprint"), dict):
+        return ["its train_summary.json records no training settings"]
+    diff = fingerprint_diff(rec["fingerprint"], result_fingerprint(cfg))
+    if diff:
+        return diff
+    try:
+        same_file = rec.get("policy_sha256") == file_sha256(folder / POLICY_FILE)
+    except OSError:
+        same_file = False
+    return [] if same_file else ["its policy.pt is not the one its summary records"]
+
+
+def same_folder(a: str | os.PathLike, b: str | os.PathLike | None) -> bool:
+    return b is not None and Path(os.path.abspath(a)) == Path(os.path.abspath(b))
+
+
+def check_publish(cfg: Config, out_dir: str | os.PathLike,
+                  run_dir: str | os.PathLike | None = None) -> None:
+    """Raise :class:`ConfigError` (one line naming the folder) if a training of ``cfg``
+    would replace a policy published in ``out_dir`` (see the module docstring); nothing to
+    check with ``train.overwrite=true`` or when ``out_dir`` is the run's own folder."""
+    if cfg.train.overwrite or same_folder(out_dir, run_dir):
+        return
+    diff = published_diff(out_dir, cfg)
+    if diff is None:
+        return
+    where = f"train.out_dir={out_dir}" if cfg.train.out_dir else str(out_dir)
+    if not diff:
+        raise ConfigError(
+            f"{where} already holds the policy of this same training (same settings, seed "
+            f"{cfg.seed}): it is kept and there is nothing to train; evaluate it, or pass "
+            "train.overwrite=true to train it again and replace it")
+    raise ConfigError(
+        f"{where} already holds a policy of another training ({'; '.join(diff[:3])}): it is "
+        "kept; choose another seed, another train.out_dir, or pass train.overwrite=true to "
+        "replace it")
+
+
+@contextlib.contextmanager
+def publish_lock(folder: str | os.PathLike) -> Iterator[None]:
+    """An exclusive lock on the publish folder itself (created if missing) while a run
+    checks and writes it, so that two runs ending together publish one after the other, the
+    second seeing the first's policy. A no-op where there are no locks."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        import fcntl
+    except ImportError:  # not POSIX
+        yield
+        return
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        with contextlib.suppress(OSError):  # a file system without locks
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)
+
+
+__all__ = ["SUMMARY", "check_publish", "holds_policy", "publish_lock", "published_diff"]
