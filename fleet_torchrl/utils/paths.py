@@ -121,7 +121,7 @@ def check_inside(setting: str, path: str | os.PathLike, root: str | os.PathLike,
         return p
     how = f"; to follow it, {allow}" if allow else ""
     raise ConfigError(f"{setting}: {os.fspath(p)} leads to {resolved}, outside "
-                      f"{os.fspath(top)} (a symbolic link), and is not followed{how}")
+                      f"{os.fspath(top)}, and is not followed{how}")
 
 
 def _fmt(setting: str, path: str | os.PathLike) -> str:
