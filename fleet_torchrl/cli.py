@@ -113,6 +113,19 @@ def override_error(exc: BaseException) -> str | None:
     return f"{line} cannot be applied: {null} is null in this config; choose {hint}"
 
 
+def name_too_long(exc: OSError) -> str | None:
+    """The one-line message for a name of the command line longer than a file name may be
+    (Hydra looks ``<key>=...`` up as a config file of ``conf/``); None for another error."""
+    import errno
+
+    if exc.errno != errno.ENAMETOOLONG:
+        return None
+    name = os.path.basename(os.fsdecode(exc.filename or "")) or "a name"
+    shown = name if len(name) <= 40 else f"{name[:40]}..."
+    return (f"{shown!r} ({len(os.fsencode(name))} bytes) is too long a name: allowed a "
+            "setting or option of at most 255 bytes")
+
+
 @contextmanager
 def one_line_errors() -> Iterator[None]:
     """Hydra's composition errors and missing extras as ``error: ...`` and exit code 2.
@@ -138,6 +151,13 @@ def one_line_errors() -> Iterator[None]:
         if hint is None and (isinstance(e, ImportError) or raised_in_a_job(e)):
             raise
         print(f"error: {hint or one_line(e)}", file=sys.stderr)
+        sys.exit(2)
+    except OSError as e:  # (after Hydra's own, some of which are OSErrors)
+        # Hydra looks a too long key up as a config file while composing
+        msg = None if raised_in_a_job(e) else name_too_long(e)
+        if msg is None:
+            raise
+        print(f"error: {msg}", file=sys.stderr)
         sys.exit(2)
     finally:
         if saved is None:
@@ -233,7 +253,6 @@ def _check_job(config: Any, dir_key: str, subdir_key: str | None = None,
     the run folder now (its command's ``claim``), a single run's only."""
     import copy
 
-    from omegaconf import OmegaConf
     from omegaconf.errors import OmegaConfBaseException
 
     from .utils.cli import USER_ERRORS, single_line
@@ -248,8 +267,7 @@ def _check_job(config: Any, dir_key: str, subdir_key: str | None = None,
             handed = None
         job_cfg = copy.deepcopy(config)
         with _JobConfig(job_cfg, dir_key, subdir_key) as job:
-            if job.run_dir is not None and OmegaConf.select(
-                    job_cfg, "hydra.output_subdir", default=None) is not None:
+            if job.run_dir is not None:  # Hydra makes it, .hydra/ written or not
                 check_output(f"hydra.{dir_key.split('.', 1)[1]}", job.run_dir, "dir")
             cfg = handed if handed is not None else to_config(without_hydra(job_cfg))
             if run_preflight:
@@ -268,6 +286,21 @@ def _check_job(config: Any, dir_key: str, subdir_key: str | None = None,
     except Exception:  # noqa: BLE001 (the task meets it again, with its traceback)
         return None
     return handed
+
+
+def check_subdir(config: Any) -> None:
+    """Raise :class:`~fleet_torchrl.utils.checks.ConfigError` for a ``hydra.sweep.subdir``
+    that is empty or ``.``: every job of the multirun would run in the sweep's folder itself,
+    one job's files over another's."""
+    from omegaconf import OmegaConf
+
+    from .utils.checks import ConfigError
+
+    sweep = OmegaConf.to_container(config.hydra.sweep, resolve=False)
+    subdir = sweep.get("subdir") if isinstance(sweep, dict) else None
+    if isinstance(subdir, str) and subdir.strip() in ("", "."):
+        raise ConfigError(f"hydra.sweep.subdir={subdir!r} is invalid: allowed a folder of "
+                          "its own per job, e.g. ${hydra:job.num}")
 
 
 class ValidateFirst(_callback_base()):
@@ -298,6 +331,7 @@ class ValidateFirst(_callback_base()):
         with _JobConfig(config, "hydra.sweep.dir") as top, user_errors():
             if top.run_dir is not None:
                 check_output("hydra.sweep.dir", top.run_dir, "dir")
+            check_subdir(config)
         jobs = sweep_jobs(config)
         if jobs is None:  # another sweeper (the table's checks its own jobs): the base config
             _check_job(config, "hydra.sweep.dir", run_preflight=False)
@@ -332,6 +366,28 @@ def shared_output(outputs: list[tuple[str, str, str]]) -> None:
         seen[path] = (what, label)
 
 
+class CheckRunDir(_callback_base()):
+    """Hydra callback of the file tools (``conf/compare.yaml``, ...: ``hydra.callbacks``),
+    which write no ``.hydra/`` but whose run folder Hydra still makes: ``hydra.run.dir``
+    (``hydra.sweep.dir`` of a multirun) checked like any output (empty, too long a name,
+    under ``/proc``) before Hydra makes it, in one line and exit code 2."""
+
+    def on_run_start(self, config: Any, **kwargs: Any) -> None:
+        self._check(config, "hydra.run.dir")
+
+    def on_multirun_start(self, config: Any, **kwargs: Any) -> None:
+        self._check(config, "hydra.sweep.dir")
+
+    @staticmethod
+    def _check(config: Any, key: str) -> None:
+        from .utils.cli import user_errors
+        from .utils.paths import check_output
+
+        with _JobConfig(config, key) as job, user_errors():
+            if job.run_dir is not None:
+                check_output(key, job.run_dir, "dir")
+
+
 def hydra_command(task: Callable[[Any], Any], config_name: str = "config",
                   config_path: str = "conf") -> Callable[[], Any]:
     """The entry point of a command (console script and ``python -m``): Hydra's app of
@@ -356,5 +412,5 @@ def hydra_command(task: Callable[[Any], Any], config_name: str = "config",
     return main
 
 
-__all__ = ["LAUNCHER_EXTRAS", "MODULE_EXTRAS", "ValidateFirst", "hydra_command",
+__all__ = ["LAUNCHER_EXTRAS", "MODULE_EXTRAS", "CheckRunDir", "ValidateFirst", "hydra_command",
            "install_line", "missing_extra", "one_line_errors", "validated"]

@@ -43,6 +43,7 @@ from .experiments.config import (
 from .sim.config import SiteConfig
 from .training.config import TrainConfig
 from .utils.checks import ConfigError, check_choice, check_range, deferred_validation
+from .utils.paths import check_name
 
 CONF_DIR = Path(__file__).resolve().parent / "conf"
 # the file tools' own configs: command name -> schema (conf/<name>.yaml extends schema_<name>)
@@ -166,6 +167,7 @@ def validate(cfg: Config) -> Config:
     """Check every range; raise :class:`ConfigError` naming the first bad field."""
     from .agents.registry import AGENTS, get_agent  # the builders: torch, TorchRL
 
+    check_name("site.name", cfg.site.name)  # a part of run folders and policy names
     cfg.site.validate()
     cfg.state.validate()
     cfg.mdp.validate()

@@ -7,6 +7,10 @@ run replaces the policy of another recipe or seed (and a folder that already hol
 refused: :mod:`fleet_torchrl.training.publish`). Folders ``<name>/policy.pt`` of earlier
 versions are still found. Evaluations and experiments find them
 again by name (:func:`saved_policy_path`, :func:`load_policies`, :func:`make_policy`).
+Every such path computed from a name stays inside ``table.policies_dir``: a policy folder
+there that is a symbolic link out of it is neither read nor written unless
+``table.follow_symlinks=true`` (:func:`inside_policies`); ``agent.policy=<path>`` and
+``train.out_dir=<path>`` name a place outside on purpose and are taken as they are.
 
 This module sits above the agents (it reads whole configs, duck-typed: ``cfg.agent``,
 ``cfg.state``, ``cfg.mdp``, ``cfg.site``, ``cfg.train``, ``cfg.table``, ``cfg.eval``) and
@@ -30,6 +34,7 @@ from .agents.base import Policy
 from .agents.policy_files import POLICY_FILE
 from .agents.registry import AGENTS, check_policy_fits_site, get_agent, load_policy_file
 from .sim import SiteConfig, SiteRanges
+from .utils.paths import check_inside, is_name
 
 # the packaged site presets, wherever in the package this module lives
 _SITE_PRESETS = resources.files(__name__.split(".")[0]).joinpath("conf", "site")
@@ -53,7 +58,10 @@ def policy_name(cfg: Any) -> str:
 def site_preset(name: str) -> SiteConfig | None:
     """The site ``conf/site/<name>.yaml`` defines (its ``defaults`` chain followed), or None
     if the package has no such preset. Plain YAML, no Hydra (tests/agents/test_registry.py
-    checks it against Hydra's composition)."""
+    checks it against Hydra's composition). A name that is no plain name (``../eval/default``)
+    names no preset."""
+    if not is_name(name):
+        return None
     path = _SITE_PRESETS.joinpath(f"{name}.yaml")
     if not path.is_file():
         return None
@@ -103,29 +111,47 @@ def site_label(site: SiteConfig) -> str:
     return f"'{site.name}' with {', '.join(changed)}"
 
 
+FOLLOW = "set table.follow_symlinks=true, or pass the policy as agent.policy=<path>"
+
+
+def inside(root: str | Path, path: str | Path, follow_symlinks: bool = False) -> Path:
+    """``path``, computed under the policies' folder ``root``, if it resolves inside it or
+    ``follow_symlinks`` is set; else :class:`~fleet_torchrl.utils.checks.ConfigError`
+    saying how to allow it."""
+    return Path(path) if follow_symlinks else \
+        check_inside("table.policies_dir", path, root, FOLLOW)
+
+
+def inside_policies(cfg: Any, path: str | Path) -> Path:
+    """:func:`inside` of ``cfg.table.policies_dir`` with ``cfg.table.follow_symlinks``."""
+    return inside(cfg.table.policies_dir, path, getattr(cfg.table, "follow_symlinks", False))
+
+
 def default_policy_dir(cfg: Any) -> Path:
     """Where a training run of ``cfg`` publishes its policy: ``train.out_dir`` if set, else
     ``<table.policies_dir>/<name>/seed<seed>`` (:func:`seed_dir`)."""
     if cfg.train.out_dir:
         return Path(cfg.train.out_dir)
-    return seed_dir(cfg.table.policies_dir, policy_name(cfg), cfg.seed)
+    return seed_dir(cfg.table.policies_dir, policy_name(cfg), cfg.seed,
+                    getattr(cfg.table, "follow_symlinks", False))
 
 
-def seed_dir(root: str | Path, name: str, seed: int) -> Path:
+def seed_dir(root: str | Path, name: str, seed: int, follow_symlinks: bool = False) -> Path:
     """Folder of the policy ``name`` trained with ``seed`` (``make train`` and ``make table``
-    publish there)."""
-    return Path(root) / name / f"seed{seed}"
+    publish there), inside ``root`` (:func:`inside`)."""
+    return inside(root, Path(root) / name / f"seed{seed}", follow_symlinks)
 
 
-def saved_policy_path(root: str | Path, name: str) -> Path:
+def saved_policy_path(root: str | Path, name: str, follow_symlinks: bool = False) -> Path:
     """The saved policy a name stands for: ``<root>/<name>/policy.pt`` if there is one, else
-    the policy of the lowest training seed, ``<root>/<name>/seed<k>/policy.pt``."""
-    folder = Path(root) / name
+    the policy of the lowest training seed, ``<root>/<name>/seed<k>/policy.pt``; inside
+    ``root`` (:func:`inside`)."""
+    folder = inside(root, Path(root) / name, follow_symlinks)
     if (folder / POLICY_FILE).is_file():
-        return folder / POLICY_FILE
+        return inside(root, folder / POLICY_FILE, follow_symlinks)
     seeds = sorted((int(p.parent.name[4:]), p) for p in folder.glob(f"seed*/{POLICY_FILE}")
                    if p.parent.name[4:].isdigit())
-    return seeds[0][1] if seeds else folder / POLICY_FILE
+    return inside(root, seeds[0][1], follow_symlinks) if seeds else folder / POLICY_FILE
 
 
 def make_policy(cfg: Any, device: str | torch.device | None = None) -> Policy:
@@ -140,7 +166,8 @@ def make_policy(cfg: Any, device: str | torch.device | None = None) -> Policy:
     elif cfg.train.out_dir:
         path = Path(cfg.train.out_dir)
     else:  # <name>/policy.pt of earlier versions, else the lowest seed trained
-        path = saved_policy_path(cfg.table.policies_dir, policy_name(cfg))
+        path = saved_policy_path(cfg.table.policies_dir, policy_name(cfg),
+                                 getattr(cfg.table, "follow_symlinks", False))
         other = site_suffix(cfg.site)
         if other and not path.is_file():  # names carry the site: say how to cross sites
             home = Path(cfg.table.policies_dir) / policy_name(cfg).removesuffix(other)
@@ -168,11 +195,12 @@ def load_policies(cfg: Any, names: list[str]) -> dict[str, Policy]:
         if spec is not None and not spec.trainable:
             out[name] = spec.make_policy(spec.schema()).to(cfg.eval.device)
         else:
-            out[name] = load_policy_file(saved_policy_path(cfg.table.policies_dir, name),
-                                         cfg.eval.device)
+            out[name] = load_policy_file(saved_policy_path(
+                cfg.table.policies_dir, name, getattr(cfg.table, "follow_symlinks", False)),
+                cfg.eval.device)
             out[name].name = name
     return out
 
 
-__all__ = ["default_policy_dir", "load_policies", "make_policy", "policy_name",
-           "saved_policy_path", "seed_dir", "site_preset", "site_suffix"]
+__all__ = ["default_policy_dir", "inside", "inside_policies", "load_policies", "make_policy",
+           "policy_name", "saved_policy_path", "seed_dir", "site_preset", "site_suffix"]

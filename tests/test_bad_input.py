@@ -1174,3 +1174,139 @@ def test_an_evaluation_killed_mid_write_leaves_no_temp_file_and_no_mixed_pair(tm
         assert not list(tmp_path.glob("*.tmp")) and not list(tmp_path.glob(".*.tmp"))
         assert check_result_pair(tmp_path / "r.json")["seed"] == 2
         old_json = (tmp_path / "r.json").read_bytes()
+
+
+# ---- paths stay inside their roots
+# names that become parts of paths are plain names; a computed policy folder that is a
+# symbolic link out of table.policies_dir is not followed unless asked; an empty or
+# unwritable run folder and a name too long for the file system are refused before the run
+# folder is made
+TOO_LONG = "n" * 300
+PATH_COMMANDS = [
+    ("evaluate", ["site.name=/../../../../tmp/x"], "site.name"),
+    ("train", ["agent=dqn", "site.name=/../../../../tmp/x"], "site.name"),
+    ("evaluate", ["site.name=../eval/default"], "site.name"),
+    ("evaluate", ["site.name=..", "agent=dqn"], "site.name"),
+    ("evaluate", [f"site.name={TOO_LONG}"], "site.name"),
+    ("train", ["agent=tabular", f"site.name={TOO_LONG}"], "site.name"),
+    ("evaluate", ["hydra.run.dir="], "hydra.run.dir"),
+    ("train", ["agent=tabular", "hydra.run.dir="], "hydra.run.dir"),
+    ("evaluate", ["hydra.run.dir=/proc/x"], "hydra.run.dir"),
+    ("evaluate", [f"hydra.run.dir={TOO_LONG}"], "hydra.run.dir"),
+    ("evaluate", [f"hydra.run.dir=runs/{TOO_LONG}/x"], "hydra.run.dir"),
+    ("evaluate", [f"eval.out={TOO_LONG}.json"], "eval.out"),
+    ("evaluate", [f"eval.out={'e' * 250}.json"], "eval.out"),  # no room for its .tmp file
+    ("train", ["agent=tabular", f"train.out_dir={TOO_LONG}"], "train.out_dir"),
+    ("evaluate", ["--multirun", "agent=rule,heuristic", "hydra.sweep.dir="], "hydra.sweep.dir"),
+    ("evaluate", ["--multirun", "agent=rule,heuristic", "hydra.sweep.subdir="],
+     "hydra.sweep.subdir"),
+    ("sweeps", ["sweep.name=../x"], "sweep.name"),
+    ("sweeps", ["sweep.name=/tmp/x"], "sweep.name"),
+    ("policy_maps", ["maps.planner_sites=[../eval/default]"], "maps.planner_sites[0]"),
+    ("evaluate", [f"+recipes.{TOO_LONG}={{overrides:['agent=tabular']}}"], "too long a name"),
+    ("evaluate", [f"{TOO_LONG}=1"], "too long a name"),
+    # the file tools: Hydra makes their run folder too
+    ("compare", ["result=good.json", "baseline=good.json", "hydra.run.dir=/proc/x"],
+     "hydra.run.dir"),
+    ("compare", ["result=good.json", "baseline=good.json", "hydra.run.dir="], "hydra.run.dir"),
+    ("report", ["results=.", "hydra.run.dir=/proc/x"], "hydra.run.dir"),
+    ("grid", ["sweep_dir=runs", f"hydra.run.dir={TOO_LONG}"], "hydra.run.dir"),
+    ("sweeps_summary", ["hydra.run.dir="], "hydra.run.dir"),
+    ("sweeps_summary", ["name=../../eval/default"], "name="),
+]
+
+
+@pytest.mark.parametrize("module,args,msg", PATH_COMMANDS,
+                         ids=[f"{m}:{' '.join(a)[:60]}" for m, a, _ in PATH_COMMANDS])
+def test_a_path_that_would_escape_or_fail_is_refused_in_one_line(
+        module, args, msg, workdir, command, capsys):
+    test_a_command_refuses_bad_input_in_one_line_and_writes_nothing(
+        module, args, msg, workdir, command, capsys)
+
+
+def test_a_recipe_name_too_long_for_a_folder_is_refused(workdir, command, capsys):
+    """A recipe becomes folder names (``<policies>/<recipe>/seed<s>``, ``train_<recipe>_*``)."""
+    (workdir / "conf" / "recipes").mkdir(parents=True)
+    (workdir / "conf" / "recipes" / "long.yaml").write_text(
+        f"defaults: [default, _self_]\n{'r' * 100}:\n  overrides: [agent=tabular]\n")
+    test_a_command_refuses_bad_input_in_one_line_and_writes_nothing(
+        "table", ["recipes=long"], "at most 64 characters", workdir, command, capsys)
+
+
+@pytest.fixture
+def linked_policies(workdir, saved_policies):
+    """``results/policies/dqn_partial`` in the working directory: a symbolic link to a saved
+    policy's folder outside ``results/``."""
+    root = workdir / "results" / "policies"
+    root.mkdir(parents=True)
+    (root / "dqn_partial").symlink_to(saved_policies / "dqn_partial")
+    return root
+
+
+@pytest.mark.parametrize("module,args", [
+    ("evaluate", ["agent=dqn", "table.policies_dir=results/policies"]),
+    ("train", ["agent=dqn", "table.policies_dir=results/policies"]),
+], ids=["evaluate", "train"])
+def test_a_policy_folder_linked_out_of_results_is_refused(
+        module, args, linked_policies, workdir, command, capsys):
+    """Evaluating reads, training publishes: neither follows the link out of results/."""
+    test_a_command_refuses_bad_input_in_one_line_and_writes_nothing(
+        module, args, "table.follow_symlinks=true", workdir, command, capsys)
+
+
+def test_a_policy_folder_linked_out_is_read_when_asked(linked_policies, workdir, command,
+                                                       saved_policies, capsys):
+    from fleet_torchrl import evaluate
+
+    small = ["agent=dqn", "table.policies_dir=results/policies", "eval.n_sims=2",
+             "eval.ticks=20", "hydra.run.dir=run"]
+    assert command(evaluate.main, *small, "table.follow_symlinks=true",
+                   "eval.out=followed.json") == 0
+    assert json.loads((workdir / "followed.json").read_text())["n_sims"] == 2
+    # the link named as the policy itself: the user's own path, read as it is
+    assert command(evaluate.main, *small, f"agent.policy={linked_policies / 'dqn_partial'}",
+                   "eval.out=named.json") == 0
+    assert (workdir / "named.json").is_file()
+    assert sorted(p.name for p in (saved_policies / "dqn_partial").iterdir()) == ["policy.pt"]
+
+
+@pytest.mark.parametrize("path,kind,words", [
+    ("", "dir", "''"), ("", "file", "''"), ("n" * 256, "dir", "folder name"),
+    ("n" * 242, "file", "file name"), (f"a/{'n' * 300}/b", "dir", "folder name"),
+    ("/" + "d/" * 2100, "dir", "path is"),
+])
+def test_output_paths_too_long_or_empty_are_refused(path, kind, words, workdir):
+    from fleet_torchrl.utils.paths import check_output
+
+    before = snapshot(workdir)
+    with pytest.raises(ConfigError) as e:
+        check_output("x.out", path, kind)
+    assert str(e.value).startswith("x.out") and words in str(e.value)
+    assert "\n" not in str(e.value) and snapshot(workdir) == before
+    assert check_output("x.out", "n" * 241, "file") and check_output("x.out", "n" * 255, "dir")
+
+
+PATH_CLI = [
+    (["fleet_torchrl.compare", "result=good.json", "baseline=good.json",
+      "hydra.run.dir=/proc/x"], "hydra.run.dir"),
+    (["fleet_torchrl.evaluate", "hydra.run.dir="], "hydra.run.dir"),
+]
+
+
+@pytest.mark.parametrize("argv,msg", PATH_CLI, ids=[" ".join(a) for a, _ in PATH_CLI])
+def test_real_command_lines_refuse_bad_run_folders(argv, msg, workdir):
+    test_real_command_lines_say_one_line_and_exit_2(argv, msg, workdir)
+
+
+API_NAMES = [
+    ("SiteConfig(name='../x')", lambda: SiteConfig(name="../x")),
+    ("SiteConfig(name='/tmp/x')", lambda: SiteConfig(name="/tmp/x")),
+    ("SiteConfig(name='')", lambda: SiteConfig(name="")),
+    ("SiteConfig(name=300 chars)", lambda: SiteConfig(name=TOO_LONG)),
+    ("env site name ../x", lambda: _env(site={"name": "../eval/default"})),
+]
+
+
+@pytest.mark.parametrize("make", [m for _, m in API_NAMES], ids=[n for n, _ in API_NAMES])
+def test_the_python_api_refuses_a_site_name_that_is_no_name(make):
+    test_the_python_api_refuses_bad_input_with_a_value_error(make)

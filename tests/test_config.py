@@ -207,3 +207,74 @@ def test_run_names_tell_runs_apart():
     assert name("agent=search") == "search"
     assert name("agent=search", "mdp.reward=throughput") == "search"  # trips either way
     assert name("agent=search", "agent.policy_class=mlp") == "search_mlp"
+
+
+# names that become parts of paths: run folders, policy names, sweep folders, figures
+NAME_LONG = "a" * 65
+
+
+@pytest.mark.parametrize("override, field", [
+    ("site.name=../eval/default", "site.name"),
+    ("site.name=/../../../../tmp/x", "site.name"),
+    ("site.name=a/b", "site.name"),
+    ("site.name=..", "site.name"),
+    ("site.name=.hidden", "site.name"),
+    ("site.name=a..b", "site.name"),
+    ("site.name='a b'", "site.name"),
+    ("site.name=-x", "site.name"),
+    (f"site.name={NAME_LONG}", "site.name"),
+    ("sweep.name=../x", "sweep.name"),
+    ("sweep.name=x/y", "sweep.name"),
+    ("sweep.name=.", "sweep.name"),
+    (f"sweep.name={NAME_LONG}", "sweep.name"),
+    ("maps.planner_sites=[../eval/default]", "maps.planner_sites[0]"),
+    ("maps.planner_sites=[default,/etc/x]", "maps.planner_sites[1]"),
+])
+def test_names_that_become_path_parts_are_plain_names(override, field):
+    with pytest.raises(ConfigError) as e:
+        compose_config([override])
+    msg = str(e.value)
+    assert msg.startswith(f"{field}=") and "\n" not in msg, msg
+    assert "allowed a name of letters, digits" in msg and "at most 64 characters" in msg, msg
+
+
+def test_a_recipe_name_is_a_short_folder_name():
+    from fleet_torchrl.experiments.config import Recipe, validate_recipes
+
+    ok = {"r" * 64: Recipe(overrides=["agent=tabular"])}
+    assert validate_recipes(ok, ("rule",)) == ok
+    for bad, shown in (("r" * 65, "r" * 65), ("r" * 300, "r" * 40 + "... (300 characters)"),
+                       ("../x", "../x"), ("a.b", "a.b")):
+        with pytest.raises(ConfigError) as e:
+            validate_recipes({bad: Recipe(overrides=["agent=tabular"])}, ("rule",))
+        assert str(e.value).startswith(f"recipes.{shown} is invalid: allowed a name of ")
+        assert "at most 64 characters" in str(e.value) and "\n" not in str(e.value)
+
+
+def test_the_packaged_names_are_plain_names():
+    """Every packaged site preset, recipe, sweep and map site passes the name check (and a
+    user's own site name like the docs' my_site)."""
+    from fleet_torchrl.utils.paths import is_name
+
+    sites = group_options("site")
+    assert {"default", "five_vehicles", "no_closure", "randomized", "slow_charger"} <= set(sites)
+    for site in sites:
+        assert compose_config([f"site={site}"]).site.name == site
+    assert compose_config(["site.name=my_site"]).site.name == "my_site"
+    cfg = compose_config([])
+    assert all(is_name(n) for n in [*sites, *cfg.recipes, *cfg.maps.planner_sites])
+    for sweep in ("pc", "tc", "nv"):
+        assert compose_config([f"+experiment=sweep_{sweep}"]).sweep.name == sweep
+
+
+def test_a_site_name_of_the_python_api_is_one_path_part():
+    """In Python a site's name is a display name (``p_c=0.5``, ``sweep point``), still never
+    more than one part of a path."""
+    from fleet_torchrl.sim import SiteConfig
+
+    for good in ("p_c=0.5", "sweep point", "default", "x" * 64):
+        assert SiteConfig(name=good).name == good
+    for bad in ("", "../x", "a/b", "a\\b", "..", ".x", "x" * 65, "a\nb", "a..b"):
+        with pytest.raises(ConfigError) as e:
+            SiteConfig(name=bad)
+        assert str(e.value).startswith("site.name=") and "\n" not in str(e.value), bad

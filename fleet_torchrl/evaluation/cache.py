@@ -23,7 +23,7 @@ import hashlib
 import json
 import logging
 from collections.abc import Callable
-from dataclasses import asdict, replace
+from dataclasses import asdict
 from functools import cache
 from pathlib import Path
 from typing import Any
@@ -89,7 +89,7 @@ def policy_fingerprint(policy: nn.Module) -> str:
 
 def site_identity(site: SiteConfig) -> dict[str, Any]:
     """A site's parameters without its display name."""
-    return asdict(replace(site, name=""))
+    return {**asdict(site), "name": ""}
 
 
 def key_of(*parts: Any) -> str:

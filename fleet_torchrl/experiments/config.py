@@ -14,6 +14,7 @@ from ..utils.checks import (
     check_types,
     validate_on_init,
 )
+from ..utils.paths import NAME_MAX, check_name
 
 # overrides a recipe may not set: the table sets them for each training seed
 TABLE_SETS = ("seed", "resume", "train.out_dir", "train.overwrite", "train.device",
@@ -71,17 +72,21 @@ class Recipe:
 
 def validate_recipes(recipes: dict[str, Recipe], reserved: tuple[str, ...],
                      path: str = "recipes") -> dict[str, Recipe]:
-    """Every recipe's overrides; names are folder names (letters, digits, ``_``, ``-``) and
-    not those of the baselines (``reserved``), which the table and the sweeps list beside them."""
+    """Every recipe's overrides; names are folder names (letters, digits, ``_``, ``-``, at
+    most :data:`~fleet_torchrl.utils.paths.NAME_MAX` characters) and not those of the
+    baselines (``reserved``), which the table and the sweeps list beside them."""
     import re
 
     if not recipes:
         raise ConfigError(f"{path}={{}} is invalid: allowed at least one recipe "
                           "(conf/recipes/default.yaml)")
     for name, recipe in recipes.items():
-        if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_-]*", name) or name in reserved:
-            raise ConfigError(f"{path}.{name} is invalid: allowed a name of letters, digits, "
-                              f"'_' and '-' other than {', '.join(reserved)}")
+        if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_-]*", name) or name in reserved or \
+                len(name) > NAME_MAX:
+            shown = name if len(name) <= 80 else f"{name[:40]}... ({len(name)} characters)"
+            raise ConfigError(f"{path}.{shown} is invalid: allowed a name of letters, digits, "
+                              f"'_' and '-', at most {NAME_MAX} characters, other than "
+                              f"{', '.join(reserved)}")
         recipe.validate(f"{path}.{name}")
         for i, base in enumerate(recipe.bases):
             if base not in recipes or base == name or recipes[base].bases:
@@ -111,6 +116,9 @@ class TableConfig:
     improve_sims: int = 30
     only: list[str] | None = None  # some of the recipes (e.g. [dqn_partial,search]); null: all
     preview: bool = False  # append each recipe's preview budget (make quick)
+    # a policy folder under policies_dir that is a symbolic link out of it is read or
+    # written only with true (a policy passed as agent.policy=<path> is always read)
+    follow_symlinks: bool = False
 
     def __post_init__(self) -> None:
         validate_on_init(self)
@@ -224,8 +232,7 @@ class SweepConfig:
                               f"{self.param}: results/sweeps/{self.name}/ holds the {want} "
                               f"sweep; name a sweep of {self.param} otherwise "
                               f"(e.g. {path}.name={self.param}_mine)")
-        if not self.name or "/" in self.name or self.name in (".", ".."):
-            raise ConfigError(f"{path}.name={self.name!r} is invalid: allowed a folder name")
+        check_name(f"{path}.name", self.name)  # results/sweeps/<name>/
         check_range(f"{path}.pick_sims", self.pick_sims, 1, 10**7)
         check_range(f"{path}.pick_ticks", self.pick_ticks, 1, 10**8)
         check_range(f"{path}.improve_sims", self.improve_sims, 0, 10**7)
@@ -304,6 +311,8 @@ class MapsConfig:
                  ) -> MapsConfig:
         for i, name in enumerate(self.policies if known is not None else ()):
             check_choice(f"{path}.policies[{i}]", name, known)
+        for i, name in enumerate(self.planner_sites):  # conf/site/<name>.yaml, planner_<name>.png
+            check_name(f"{path}.planner_sites[{i}]", name)
         check_range(f"{path}.planner_sims", self.planner_sims, 1, 100_000)
         check_range(f"{path}.planner_ticks", self.planner_ticks, 1, 10**7)
         return self
@@ -439,3 +448,7 @@ class SweepSummaryConfig:
 
     def __post_init__(self) -> None:
         check_types(self, "sweeps_summary")
+
+    def validate(self) -> SweepSummaryConfig:
+        check_name("name", self.name)  # conf/experiment/sweep_<name>.yaml, <out>/<name>/
+        return self

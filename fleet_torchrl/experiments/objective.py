@@ -78,7 +78,8 @@ def candidate_policies(cfg: Config) -> dict[str, Policy]:
     # early charging only while another vehicle is at most 75: as little queueing, more trips
     pols["heuristic_65_75"] = HeuristicPolicy(40.0, 65.0, others_below=75.0)
     root = cfg.table.policies_dir
-    saved = [name for name in cfg.recipes if saved_policy_path(root, name).is_file()]
+    saved = [name for name in cfg.recipes
+             if saved_policy_path(root, name, cfg.table.follow_symlinks).is_file()]
     return {**pols, **load_policies(cfg, saved)}
 
 

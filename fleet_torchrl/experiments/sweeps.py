@@ -79,7 +79,7 @@ from ..config import Config, compose_config
 from ..evaluation import evaluate_policy, evaluate_with, gain_over, seed_interval
 from ..evaluation.cache import EvalCache, policy_fingerprint, site_identity
 from ..sim import SiteConfig
-from ..store import load_policies, saved_policy_path
+from ..store import inside_policies, load_policies, saved_policy_path
 from ..training import Trainer, result_fingerprint
 from ..training.checkpoint import without_neutral
 from ..utils.checks import ConfigError
@@ -110,7 +110,7 @@ def policy_identity(cfg: Config, name: str) -> str:
     spec = AGENTS.get(name)
     if spec is not None and not spec.trainable:
         return f"{name}:{digest(without_neutral(spec.schema()))}"
-    path = saved_policy_path(cfg.table.policies_dir, name)
+    path = saved_policy_path(cfg.table.policies_dir, name, cfg.table.follow_symlinks)
     if not path.is_file():
         return f"{name}:missing"
     return f"{name}:{file_sha256(path)[:16]}"
@@ -199,7 +199,7 @@ def search_start(cfg: Config, run_cfg: Config, policies: dict[str, Policy],
         return best[1]
     if trained and best[1] in trained:
         return str(trained[best[1]])
-    return str(saved_policy_path(cfg.table.policies_dir, best[1]))
+    return str(saved_policy_path(cfg.table.policies_dir, best[1], cfg.table.follow_symlinks))
 
 
 def point_training(cfg: Config, run_cfg: Config, label: str) -> tuple[Policy, dict[str, Any]]:
@@ -357,10 +357,11 @@ def seed_paths(cfg: Config, name: str) -> dict[int, Path]:
     if spec is not None and not spec.trainable:
         return {}
     folder = Path(cfg.table.policies_dir) / name
-    seeds = {int(p.parent.name[4:]): p for p in folder.glob(f"seed*/{POLICY_FILE}")
+    seeds = {int(p.parent.name[4:]): inside_policies(cfg, p)
+             for p in inside_policies(cfg, folder).glob(f"seed*/{POLICY_FILE}")
              if p.parent.name[4:].isdigit()}
     if not seeds:
-        seeds = {0: saved_policy_path(cfg.table.policies_dir, name)}
+        seeds = {0: saved_policy_path(cfg.table.policies_dir, name, cfg.table.follow_symlinks)}
     return dict(sorted(seeds.items()))
 
 

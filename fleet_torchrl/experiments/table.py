@@ -128,7 +128,8 @@ def recipe_folder(cfg: Config, name: str) -> str:
 
 
 def recipe_seed_dir(cfg: Config, name: str, seed: int) -> Path:
-    return seed_dir(cfg.table.policies_dir, recipe_folder(cfg, name), seed)
+    return seed_dir(cfg.table.policies_dir, recipe_folder(cfg, name), seed,
+                    cfg.table.follow_symlinks)
 
 
 def run_overrides(name: str, seed: int, cfg: Config) -> list[str]:

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from ..utils.checks import ConfigError, check_known_fields, check_range, validate_on_init
+from ..utils.paths import check_label
 
 MAX_NODES = 62  # occupancy of a site is one 64-bit mask
 
@@ -105,7 +106,10 @@ class SiteConfig:
         return self.ranges is not None and bool(self.ranges.varied())
 
     def validate(self, path: str = "site") -> SiteConfig:
-        """Raise :class:`~fleet_torchrl.utils.checks.ConfigError` naming the first bad field."""
+        """Raise :class:`~fleet_torchrl.utils.checks.ConfigError` naming the first bad field.
+        The name may become part of a path (policy names, run folders): one part, never
+        ``/`` or ``..`` (the root config asks more of ``site.name``: a plain name)."""
+        check_label(f"{path}.name", self.name)
         check_range(f"{path}.n_nodes", self.n_nodes, 5, MAX_NODES,
                     allowed=f"[5, {MAX_NODES}] (site occupancy is a 64-bit mask)")
         check_range(f"{path}.n_vehicles", self.n_vehicles, 1, self.n_nodes - 2,

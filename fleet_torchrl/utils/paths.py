@@ -5,17 +5,123 @@ minutes, and one that fails on a temp file's name (``/proc/.x.csv.l4e4p52p.tmp``
 say which setting to change. Every command therefore checks each path it will write before
 it starts (:func:`check_output`): a file path must not be a folder, a folder must not be a
 file, the nearest folder that exists must be writable, and nothing goes under the kernel's
-pseudo file systems (``/proc``, ``/sys``, ``/dev``). The error names the setting.
+pseudo file systems (``/proc``, ``/sys``, ``/dev``), no file or folder name is longer than
+the file system allows (the run folder would be made first, then the write fail). The error
+names the setting.
+
+Names that become parts of paths (``site.name``, recipe and sweep names) are names, never
+paths (:func:`check_name`): one component, so that what is computed from them stays inside
+the folder it is computed under. A computed path that still leads out of its root, through a
+symbolic link, is refused unless the user allows it (:func:`check_inside`).
 """
 
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 
 from .checks import ConfigError, SetupError
 
 PSEUDO = (Path("/proc"), Path("/sys"), Path("/dev"))  # no results there, whoever runs
+
+# a name that becomes a path part: one component, no hidden or parent folder, short enough
+# that the folder names made of it (``<agent>_<state>_<site>``, ``train_<recipe>_seed<s>``)
+# stay far below the file system's limit on a name (255 bytes)
+NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
+NAME_MAX = 64
+NAME_RULE = (f"a name of letters, digits, '_', '.' and '-', starting with a letter or digit, "
+             f"without '..', at most {NAME_MAX} characters")
+NAME_MAX_BYTES = 255  # a file or folder name, where the file system does not say
+PATH_MAX_BYTES = 4096  # a whole path, likewise
+# what a temporary file beside a result adds to its name (runinfo.write_json: ``.<name>.``,
+# 8 random characters, ``.tmp``)
+TMP_EXTRA = 14
+
+
+def is_name(value: object, pattern: re.Pattern[str] = NAME) -> bool:
+    """Whether ``value`` is a string :func:`check_name` accepts."""
+    return isinstance(value, str) and len(value) <= NAME_MAX and ".." not in value and \
+        pattern.fullmatch(value) is not None
+
+
+def check_name(setting: str, value: object, pattern: re.Pattern[str] = NAME,
+               rule: str = NAME_RULE) -> str:
+    """Raise :class:`ConfigError` (one line naming ``setting`` and :data:`NAME_RULE`) unless
+    ``value`` is a name that can become one part of a path: never ``/``, ``..`` or a hidden
+    name, never longer than :data:`NAME_MAX` characters. Returns the name."""
+    if not is_name(value, pattern):
+        shown = repr(value) if not isinstance(value, str) or len(value) <= 80 else \
+            repr(value[:40] + "...") + f" ({len(value)} characters)"
+        raise ConfigError(f"{setting}={shown} is invalid: allowed {rule}")
+    return value  # type: ignore[return-value]
+
+
+# a display name that may still become one part of a path (a site's name in the Python API:
+# ``p_c=0.5``, ``sweep point``): never a separator, a control character, '..' or hidden
+LABEL = re.compile(r"[^./\\\x00-\x1f\x7f][^/\\\x00-\x1f\x7f]*")
+LABEL_RULE = (f"a name without '/', '\\', '..' or control characters, not starting with '.', "
+              f"at most {NAME_MAX} characters")
+
+
+def check_label(setting: str, value: object) -> str:
+    """:func:`check_name` with :data:`LABEL`'s wider rule (spaces and ``=`` allowed)."""
+    return check_name(setting, value, LABEL, LABEL_RULE)
+
+
+def _limit(folder: Path, name: str, default: int) -> int:
+    """The file system's limit ``name`` (``PC_NAME_MAX``, ``PC_PATH_MAX``) at ``folder``."""
+    try:
+        return int(os.pathconf(folder, name))
+    except (OSError, ValueError, AttributeError):  # not known here, or not POSIX
+        return default
+
+
+def _check_lengths(setting: str, path: str | os.PathLike, kind: str) -> None:
+    """Raise :class:`ConfigError` if a name in ``path`` (or the whole path) is longer than
+    the file system takes; a file's own name also leaves room for its temporary file."""
+    absolute = os.path.abspath(os.fspath(path))
+    folder = Path(absolute)
+    while folder != folder.parent:  # the nearest folder that exists, without a stat that fails
+        try:
+            if folder.is_dir():
+                break
+        except OSError:
+            pass
+        folder = folder.parent
+    name_max = _limit(folder, "PC_NAME_MAX", NAME_MAX_BYTES)
+    parts = Path(os.fspath(path)).parts
+    for k, part in enumerate(parts):
+        room = name_max - (TMP_EXTRA if kind == "file" and k == len(parts) - 1 else 0)
+        size = len(os.fsencode(part))
+        if size > room and part != os.sep:
+            shown = part if len(part) <= 40 else part[:40] + "..."
+            what = "file name" if kind == "file" and k == len(parts) - 1 else "folder name"
+            raise ConfigError(f"{setting}: the {what} {shown!r} is {size} bytes long: allowed "
+                              f"at most {room} bytes (the file system's limit is {name_max})")
+    path_max = _limit(folder, "PC_PATH_MAX", PATH_MAX_BYTES)
+    size = len(os.fsencode(absolute)) + (TMP_EXTRA if kind == "file" else NAME_MAX_BYTES)
+    if size > path_max:
+        raise ConfigError(f"{setting}: the path is {len(os.fsencode(absolute))} bytes long: "
+                          f"allowed a shorter one (the file system's limit is {path_max}, "
+                          "files inside included)")
+
+
+def check_inside(setting: str, path: str | os.PathLike, root: str | os.PathLike,
+                 allow: str | None = None) -> Path:
+    """``path``, computed under ``root`` from names, if it resolves inside ``root``; else
+    raise :class:`ConfigError` (one line): a symbolic link on the way leads out of ``root``.
+    ``allow`` says how the user lets it be followed (e.g. ``table.follow_symlinks=true``)."""
+    p, top = Path(path), Path(root)
+    try:
+        resolved, home = p.resolve(), top.resolve()
+    except (OSError, RuntimeError) as e:  # a symlink loop
+        raise ConfigError(f"{setting}: {os.fspath(p)} cannot be resolved: {e}") from None
+    if resolved == home or home in resolved.parents:
+        return p
+    how = f"; to follow it, {allow}" if allow else ""
+    raise ConfigError(f"{setting}: {os.fspath(p)} leads to {resolved}, outside "
+                      f"{os.fspath(top)}, and is not followed{how}")
 
 
 def _fmt(setting: str, path: str | os.PathLike) -> str:
@@ -25,14 +131,17 @@ def _fmt(setting: str, path: str | os.PathLike) -> str:
 def check_output(setting: str, path: str | os.PathLike, kind: str = "file",
                  suffix: str | None = None) -> Path:
     """Raise :class:`ConfigError` (one line naming ``setting``) unless ``path`` can be
-    written as a ``kind`` (``"file"`` or ``"dir"``): not under ``/proc``, ``/sys`` or
-    ``/dev``; a file path that is no folder (with ``suffix`` if given), a folder path that
-    is no file; and the nearest existing folder on the way writable. Returns the path."""
+    written as a ``kind`` (``"file"`` or ``"dir"``): not empty, no name in it longer than
+    the file system takes (a file's with room for its temporary file), not under ``/proc``,
+    ``/sys`` or ``/dev``; a file path that is no folder (with ``suffix`` if given), a folder
+    path that is no file; and the nearest existing folder on the way writable. Returns the
+    path."""
     if kind not in ("file", "dir"):
         raise ValueError(f"kind must be 'file' or 'dir', not {kind!r}")
-    p = Path(path)
-    if not os.fspath(p):
+    if not os.fspath(path):  # Path("") would be "." (Hydra's run folder: the working one)
         raise ConfigError(f"{setting}='' is invalid: allowed a path")
+    p = Path(path)
+    _check_lengths(setting, p, kind)
     resolved = Path(os.path.abspath(p))
     try:
         resolved = p.resolve()
@@ -117,5 +226,6 @@ def release_run_dir(run_dir: str | os.PathLike) -> None:
         f.close()
 
 
-__all__ = ["LOCK", "PSEUDO", "check_input_dir", "check_output", "hold_run_dir",
-           "release_run_dir"]
+__all__ = ["LABEL", "LABEL_RULE", "LOCK", "NAME", "NAME_MAX", "NAME_RULE", "PSEUDO",
+           "check_input_dir", "check_inside", "check_label", "check_name", "check_output",
+           "hold_run_dir", "is_name", "release_run_dir"]

@@ -18,7 +18,7 @@ from fleet_torchrl.agents import (
     register,
 )
 from fleet_torchrl.agents.config import AGENT_SCHEMAS
-from fleet_torchrl.config import CONF_DIR, compose_config
+from fleet_torchrl.config import CONF_DIR, ConfigError, compose_config
 from fleet_torchrl.store import make_policy, policy_name
 
 
@@ -232,3 +232,77 @@ def test_site_label_names_a_preset_and_the_fields_changed_from_it():
     narrowed = SiteConfig(name="randomized", ranges=SiteRanges(
         n_vehicles=randomized.ranges.n_vehicles, p_c=randomized.ranges.p_c, t_c=[20, 40]))
     assert site_label(narrowed) == "'randomized' with ranges.t_c=[20, 40]"
+
+
+def test_a_site_preset_is_found_by_name_only():
+    """``site_preset`` reads conf/site/<name>.yaml for a plain name only: a name that walks
+    out of conf/site (another group's YAML, an absolute path) names no preset."""
+    from fleet_torchrl.store import site_preset
+
+    assert site_preset("five_vehicles") is not None
+    for bad in ("../eval/default", "../site/default", "/etc/hostname", "..", ".hidden", ""):
+        assert site_preset(bad) is None, bad
+
+
+def _linked_policies(tmp_path):
+    """``results/policies`` whose ``tabular`` is a symbolic link to a folder outside it."""
+    from fleet_torchrl.agents import save_policy
+    from fleet_torchrl.agents.tabular import TabularQPolicy
+
+    save_policy(tmp_path / "elsewhere" / "tabular" / "policy.pt", TabularQPolicy(), "tabular")
+    root = tmp_path / "results" / "policies"
+    root.mkdir(parents=True)
+    (root / "tabular").symlink_to(tmp_path / "elsewhere" / "tabular")
+    return root
+
+
+def test_a_policy_folder_linked_out_of_the_policies_is_not_followed(tmp_path):
+    """A policy folder under ``table.policies_dir`` that is a symbolic link out of it is
+    neither read (evaluation, the experiments' policies by name) nor written (training) unless
+    ``table.follow_symlinks=true``; ``agent.policy=<path>`` reads it as named."""
+    from fleet_torchrl.agents.tabular import TabularQPolicy
+    from fleet_torchrl.store import default_policy_dir, load_policies, saved_policy_path
+
+    root = _linked_policies(tmp_path)
+    cfg = compose_config(["agent=tabular", f"table.policies_dir={root}"])
+    for call in (lambda: make_policy(cfg), lambda: load_policies(cfg, ["tabular"]),
+                 lambda: saved_policy_path(root, "tabular"), lambda: default_policy_dir(cfg)):
+        with pytest.raises(ConfigError, match="outside .*table.follow_symlinks=true") as e:
+            call()
+        assert "\n" not in str(e.value) and str(tmp_path / "elsewhere") in str(e.value)
+    ok = compose_config(["agent=tabular", f"table.policies_dir={root}",
+                         "table.follow_symlinks=true"])
+    assert isinstance(make_policy(ok), TabularQPolicy)
+    assert isinstance(load_policies(ok, ["tabular"])["tabular"], TabularQPolicy)
+    assert default_policy_dir(ok) == root / "tabular"
+    named = compose_config(["agent=tabular", f"agent.policy={root / 'tabular'}"])
+    assert isinstance(make_policy(named), TabularQPolicy)
+
+
+def test_a_seed_or_policy_file_linked_out_is_not_followed_but_a_linked_root_is(tmp_path):
+    """The check is of every computed path under the root: a seed folder or a policy file
+    that is a link out is refused too; the policies' folder itself may be a link (the user
+    named it), and links that stay inside it are followed."""
+    from fleet_torchrl.agents import save_policy
+    from fleet_torchrl.agents.tabular import TabularQPolicy
+    from fleet_torchrl.store import saved_policy_path, seed_dir
+
+    save_policy(tmp_path / "out" / "policy.pt", TabularQPolicy(), "tabular")
+    root = tmp_path / "policies"
+    (root / "seeded").mkdir(parents=True)
+    (root / "seeded" / "seed0").symlink_to(tmp_path / "out")
+    (root / "filed").mkdir()
+    (root / "filed" / "policy.pt").symlink_to(tmp_path / "out" / "policy.pt")
+    for name in ("seeded", "filed"):
+        with pytest.raises(ConfigError, match="table.follow_symlinks"):
+            saved_policy_path(root, name)
+    with pytest.raises(ConfigError, match="table.follow_symlinks"):
+        seed_dir(root, "seeded", 0)
+    assert saved_policy_path(root, "seeded", follow_symlinks=True).is_file()
+    save_policy(root / "real" / "policy.pt", TabularQPolicy(), "tabular")
+    (root / "alias").symlink_to(root / "real")  # inside: followed
+    assert saved_policy_path(root, "alias") == root / "alias" / "policy.pt"
+    (tmp_path / "linked_root").symlink_to(root)
+    assert saved_policy_path(tmp_path / "linked_root", "real").is_file()
+    with pytest.raises(ConfigError):  # a name that walks out (never a plain name)
+        saved_policy_path(root, "../out")
