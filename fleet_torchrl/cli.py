@@ -126,6 +126,39 @@ def name_too_long(exc: OSError) -> str | None:
             "setting or option of at most 255 bytes")
 
 
+def check_environment() -> None:
+    """What a command reads from its environment is valid, else one line and exit code 2
+    before Hydra starts: ``FLEET_TORCHRL_RUN_PID`` (:func:`~fleet_torchrl.config.run_pid`)."""
+    from .config import run_pid
+    from .utils.cli import user_errors
+
+    with user_errors():
+        run_pid()
+
+
+def group_value_error(exc: BaseException) -> str | None:
+    """The one-line message for an override Hydra's defaults list refuses with a
+    ``ValueError`` while composing: no key (``=0.5``), or a config group given a value that
+    names no option (``site=null``, ``~agent=1``); None for anything else."""
+    tb, override, repo = exc.__traceback__, None, None
+    while tb is not None:
+        local = tb.tb_frame.f_locals
+        if hasattr(local.get("override"), "input_line"):
+            override, repo = local["override"], local.get("repo")
+        tb = tb.tb_next
+    if override is None:
+        return None
+    line, key = override.input_line, override.key_or_group
+    if not key:
+        return f"{line} is invalid: an override is key=value, with a key"
+    try:
+        options = sorted(repo.get_group_options(key)) if repo is not None else []
+    except Exception:  # noqa: BLE001 (the options are a hint only)
+        options = []
+    allowed = f"allowed one of {', '.join(options)}" if options else "allowed an option name"
+    return f"{line} is invalid: {key} is a config group; {allowed}"
+
+
 @contextmanager
 def one_line_errors() -> Iterator[None]:
     """Hydra's composition errors and missing extras as ``error: ...`` and exit code 2.
@@ -142,6 +175,12 @@ def one_line_errors() -> Iterator[None]:
         yield
     except (AssertionError, AttributeError) as e:  # OmegaConf's, on an override it cannot apply
         msg = None if raised_in_a_job(e) else override_error(e)
+        if msg is None:
+            raise
+        print(f"error: {msg}", file=sys.stderr)
+        sys.exit(2)
+    except ValueError as e:  # Hydra's defaults list, on a group override it cannot apply
+        msg = None if raised_in_a_job(e) else group_value_error(e)
         if msg is None:
             raise
         print(f"error: {msg}", file=sys.stderr)
@@ -404,6 +443,7 @@ def hydra_command(task: Callable[[Any], Any], config_name: str = "config",
     def main() -> Any:
         register_configs()
         mark_multirun(sys.argv[1:])
+        check_environment()
         with one_line_errors():
             return app()
 

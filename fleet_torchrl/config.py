@@ -17,6 +17,8 @@ composing a config is what ``--help`` and every tab completion do.
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field, fields, is_dataclass
 from pathlib import Path
 from typing import Any
@@ -105,8 +107,15 @@ def run_pid() -> int:
     """``${fleet_pid:}`` of the run folders: the process id of the command, which keeps two
     commands started in the same second apart. A multirun's workers (joblib, submitit, Ray)
     resolve the sweep folder again: they read the launching command's id from the
-    environment it set (:func:`mark_multirun`), so every job lands in one sweep folder."""
-    return int(os.environ.get(RUN_PID) or os.getpid())
+    environment it set (:func:`mark_multirun`), so every job lands in one sweep folder. A
+    value there that is no process id raises :class:`ConfigError` (one line)."""
+    value = os.environ.get(RUN_PID)
+    if not value:
+        return os.getpid()
+    if not (value.isascii() and value.isdigit()) or not 0 < int(value) < 2**31:
+        raise ConfigError(f"{RUN_PID}={value[:40]!r} is invalid: allowed a process id (a "
+                          "positive integer); unset it (a multirun sets it for its jobs)")
+    return int(value)
 
 
 def activate_line() -> str:
@@ -294,6 +303,35 @@ def unknown_keys(node: Any, path: str = "") -> list[str]:
     return out
 
 
+@contextmanager
+def unresolvable_as_config_errors() -> Iterator[None]:
+    """What a composed config cannot become whatever runs it, as a one-line
+    :class:`ConfigError` naming the setting: a group left without a value (``~agent``) and
+    an interpolation of an unset environment variable (``${oc.env:NAME}``). Other
+    interpolations (``${hydra:...}``, resolved where the job runs) raise as they are."""
+    from omegaconf.errors import InterpolationResolutionError, MissingMandatoryValue
+
+    try:
+        yield
+    except MissingMandatoryValue as e:
+        key = getattr(e, "full_key", None) or "a setting"
+        group = CONF_DIR / key.replace(".", "/")
+        options = sorted(p.stem for p in group.glob("*.yaml")) if group.is_dir() else []
+        allowed = (f"choose one of {', '.join(f'{key}={o}' for o in options)}" if options
+                   else "give it a value")
+        raise ConfigError(f"{key} has no value: {allowed}") from None
+    except InterpolationResolutionError as e:
+        import re
+
+        m = re.search(r"Environment variable '([^']*)' not found", str(e))
+        if m is None:
+            raise
+        key, name = getattr(e, "full_key", None) or "a setting", m.group(1)
+        raise ConfigError(f"{key} refers to the environment variable {name}, which is not "
+                          f"set: set it, or give a default (${{oc.env:{name},<default>}})"
+                          ) from None
+
+
 def to_config(cfg: DictConfig | Config) -> Config:
     """Turn a composed Hydra config into validated dataclasses; a key the schema does not
     have (e.g. ``+site.pc=0.5``, a misspelt ``site.p_c``) is rejected, naming it."""
@@ -301,8 +339,8 @@ def to_config(cfg: DictConfig | Config) -> Config:
         bad = unknown_keys(cfg)
         if bad:
             raise ConfigError(bad[0])
-    with deferred_validation():  # validated whole below, each field under its own path
-        obj = OmegaConf.to_object(cfg) if isinstance(cfg, DictConfig) else cfg
+    with deferred_validation(), unresolvable_as_config_errors():  # validated whole below,
+        obj = OmegaConf.to_object(cfg) if isinstance(cfg, DictConfig) else cfg  # per field
     if not isinstance(obj, Config):  # composed without the schema (e.g. plain YAML in a test)
         raise ConfigError("config was not composed from the 'schema_config' schema")
     return validate(obj)

@@ -71,6 +71,7 @@ def preflight(cfg: Config, run_dir: str | Path | None) -> None:
     if cfg.resume and run_dir is not None:
         check_resumable(Path(run_dir) / CHECKPOINT, cfg)
     check_publish(cfg, default_policy_dir(cfg), run_dir)
+    check_training_sites(cfg)
 
 
 def output_paths(cfg: Config) -> list[tuple[str, Path]]:
@@ -89,6 +90,18 @@ def claim(cfg: Config, run_dir: str | Path) -> None:
 
     Path(run_dir).mkdir(parents=True, exist_ok=True)
     hold_run_dir(run_dir)
+
+
+
+
+def check_training_sites(cfg: Config) -> None:
+    """The training's sites can start their episodes: a site whose initial states keep
+    failing is refused in one line before the run folder is made (on at most 1024 of
+    ``agent.num_sites``: what fails there fails in the run)."""
+    from .env.fleet_env import check_site_starts
+
+    n = min(int(getattr(cfg.agent, "num_sites", 1)), 1024)
+    check_site_starts(cfg.site, n, cfg.mdp, cfg.seed, cfg.state.name)
 
 
 def train(cfg: Config, run_dir: str | Path) -> dict:

@@ -1310,3 +1310,173 @@ API_NAMES = [
 @pytest.mark.parametrize("make", [m for _, m in API_NAMES], ids=[n for n, _ in API_NAMES])
 def test_the_python_api_refuses_a_site_name_that_is_no_name(make):
     test_the_python_api_refuses_bad_input_with_a_value_error(make)
+
+
+# ---- one line for every failure: composition, environment, devices, numbers, the env
+def _no_device(kind: str) -> bool:
+    if kind == "cuda":
+        return not torch.cuda.is_available()
+    mps = getattr(torch.backends, "mps", None)
+    return mps is None or not mps.is_available()
+
+
+# a site whose initial states keep failing before their first decision: one vehicle on 61
+# candidate nodes, a move costs everything it has (it fails unless it starts at D)
+NEVER_STARTS = ["site.n_nodes=62", "site.n_vehicles=1", "site.closed_node=20", "site.e_move=100"]
+ONE_LINE_COMMANDS = [
+    ("evaluate", ["eval.n_sims=${oc.env:FLEET_TORCHRL_UNSET_VAR}"], "FLEET_TORCHRL_UNSET_VAR"),
+    ("evaluate", ["~agent"], "agent=rule"),
+    ("evaluate", ["=0.5"], "=0.5"),
+    ("evaluate", ["site=null"], "site=null"),
+    ("evaluate", ["~agent=1"], "~agent=1"),
+    ("train", ["agent=dqn", "train.max_episodes=1000000000000000000"], "train.max_episodes"),
+    ("train", ["agent=dqn", "train.max_episodes=1e18"], "train.max_episodes"),
+    ("train", ["agent=dqn", "agent.steps_per_round=10000000000"], "agent.steps_per_round"),
+    ("train", ["agent=tabular", "agent.num_sites=64", "train.max_episodes=64",
+               *NEVER_STARTS], "site.xi"),
+    *([("evaluate", ["eval.device=mps"], "eval.device")] if _no_device("mps") else []),
+    *([("evaluate", ["eval.device=cuda"], "eval.device"),
+       ("train", ["agent=dqn", "train.device=cuda"], "train.device")]
+      if _no_device("cuda") else []),
+]
+
+
+@pytest.mark.parametrize("module,args,msg", ONE_LINE_COMMANDS,
+                         ids=[f"{m}:{' '.join(a)}" for m, a, _ in ONE_LINE_COMMANDS])
+def test_every_failure_of_a_command_is_one_line(module, args, msg, workdir, command, capsys,
+                                                monkeypatch):
+    monkeypatch.delenv("FLEET_TORCHRL_UNSET_VAR", raising=False)
+    test_a_command_refuses_bad_input_in_one_line_and_writes_nothing(
+        module, args, msg, workdir, command, capsys)
+
+
+@pytest.mark.parametrize("value", ["abc", "-5", "0", "1.5", " "])
+def test_a_bad_run_pid_in_the_environment_is_one_line(value, workdir, command, capsys,
+                                                      monkeypatch):
+    from fleet_torchrl import evaluate
+    from fleet_torchrl.config import RUN_PID
+
+    monkeypatch.setenv(RUN_PID, value)
+    before = snapshot(workdir)
+    capsys.readouterr()
+    assert command(evaluate.main, "eval.n_sims=2", "eval.ticks=10") == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"error: {RUN_PID}="), err
+    assert snapshot(workdir) == before
+
+
+def test_composition_errors_are_one_line_on_a_real_command_line(workdir):
+    """What a user sees in a shell: exit code 2, one line, no traceback, nothing written."""
+    from fleet_torchrl.config import RUN_PID
+
+    before = snapshot(workdir)
+    for args, env, msg in ((["~agent"], {}, "agent has no value"),
+                           (["=0.5"], {}, "=0.5 is invalid"),
+                           (["eval.n_sims=2"], {RUN_PID: "x"}, RUN_PID)):
+        r = subprocess.run([sys.executable, "-m", "fleet_torchrl.evaluate", *args],
+                           cwd=workdir, capture_output=True, text=True, timeout=120,
+                           env={**os.environ, **env})
+        lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+        assert r.returncode == 2 and len(lines) == 1, r.stderr
+        assert lines[0].startswith("error: ") and msg in lines[0], r.stderr
+    assert snapshot(workdir) == before
+
+
+def _terminated_env():
+    """An environment of 4 sites stepped until one has failed, and its last tensordict."""
+    env = _env(num_sites=4, site=SiteConfig(e_move=5.0, xi=60.0, soc_low=30.0))
+    td = env.reset()
+    for _ in range(50):
+        td = env.step(td.set("action", torch.zeros(4, dtype=torch.int64)))
+        if td["next", "terminated"].any():
+            return env, env.step_mdp(td)
+        td = env.step_mdp(td)
+    raise AssertionError("no site failed")
+
+
+def _load_bad_state(key, change):
+    env = _env(num_sites=2)
+    env.reset()
+    sd = env.state_dict()
+    sd[key] = change(sd[key].clone())
+    env.load_state_dict(sd)
+
+
+def _step_terminated():
+    env, td = _terminated_env()
+    env.step(td.set("action", torch.zeros(4, dtype=torch.int64)))
+
+
+def _site_ranges(**kw):
+    from fleet_torchrl.sim.config import SiteRanges
+
+    return SiteRanges(**kw)
+
+
+def _train_config(**kw):
+    from fleet_torchrl.training.config import TrainConfig
+
+    return TrainConfig(**kw)
+
+
+ONE_LINE_API = [
+    ("SiteConfig(p_c=np.float32(nan))", lambda: SiteConfig(p_c=np.float32("nan"))),
+    ("SiteConfig(p_c=np.float64(inf))", lambda: SiteConfig(p_c=np.float64("inf"))),
+    ("SiteConfig(e_move=np.float32(-inf))", lambda: SiteConfig(e_move=np.float32("-inf"))),
+    ("SiteConfig(p_c=torch nan)", lambda: SiteConfig(p_c=torch.tensor(float("nan")))),
+    ("SiteConfig(p_c=True)", lambda: SiteConfig(p_c=True)),
+    ("SiteConfig(n_vehicles=np.int64(99))", lambda: SiteConfig(n_vehicles=np.int64(99))),
+    ("MDPConfig(gamma=np.float32(nan))", lambda: MDPConfig(gamma=np.float32("nan"))),
+    ("SiteRanges(n_vehicles=[1, 3.0])", lambda: _site_ranges(n_vehicles=[1, 3.0])),
+    ("SiteRanges(t_c=[10, 20.5])", lambda: _site_ranges(t_c=[10, 20.5])),
+    ("SiteRanges(p_c=[0.1, np.float32(nan)])",
+     lambda: _site_ranges(p_c=[0.1, np.float32("nan")])),
+    ("TrainConfig(max_episodes=10**18)", lambda: _train_config(max_episodes=10**18)),
+    ("TrainConfig(defer_margins=[np nan])",
+     lambda: _train_config(defer_margins=[np.float64("nan")])),
+    ("env device=nope", lambda: _env(device="nope")),
+    ("env device=cuda:nope", lambda: _env(device="cuda:x")),
+    *([("env device=cuda", lambda: _env(device="cuda")),
+       ("env device=torch.device(cuda)", lambda: _env(device=torch.device("cuda")))]
+      if _no_device("cuda") else []),
+    *([("env device=mps", lambda: _env(device="mps"))] if _no_device("mps") else []),
+    ("env step after termination", _step_terminated),
+    ("env load nan soc", lambda: _load_bad_state("site.soc", lambda v: v.fill_(float("nan")))),
+    ("env load negative seed", lambda: _load_bad_state("seed", lambda v: torch.tensor(-1))),
+    ("env load soc 1e9", lambda: _load_bad_state("site.soc", lambda v: v.fill_(1e9))),
+    ("env load pos off the site", lambda: _load_bad_state("site.pos", lambda v: v.fill_(99))),
+    ("env load wrong shape", lambda: _load_bad_state("site.tick", lambda v: v[:1])),
+    ("env load float ticks", lambda: _load_bad_state("site.tick", lambda v: v.double())),
+    ("env load negative episodes", lambda: _load_bad_state("episodes", lambda v: v - 5)),
+    ("env load p_c inf", lambda: _load_bad_state("site.params.p_c",
+                                                 lambda v: v.fill_(float("inf")))),
+    ("env never starts", lambda: _env(num_sites=64, site=SiteConfig(
+        n_nodes=62, n_vehicles=1, closed_node=20, e_move=100.0)).reset()),
+]
+
+
+@pytest.mark.parametrize("make", [m for _, m in ONE_LINE_API], ids=[n for n, _ in ONE_LINE_API])
+def test_every_failure_of_the_python_api_is_one_value_error(make):
+    test_the_python_api_refuses_bad_input_with_a_value_error(make)
+
+
+def test_the_env_names_the_device_and_what_is_allowed():
+    with pytest.raises(ValueError, match=r"^device='nope' is invalid: allowed cpu, cuda"):
+        _env(device="nope")
+    if _no_device("cuda"):
+        with pytest.raises(ValueError, match=r"^device='cuda' is invalid: CUDA is not "):
+            _env(device="cuda")
+
+
+def test_a_refused_state_changes_nothing():
+    """A loaded state is checked whole before any of it is taken."""
+    env = _env(num_sites=2)
+    env.reset()
+    sd = env.state_dict()
+    before = {k: v.clone() for k, v in sd.items()}
+    bad = {**sd, "site.pos": sd["site.pos"].clone(), "site.soc": sd["site.soc"].clone().fill_(
+        float("nan"))}
+    bad["site.pos"].fill_(0)  # taken first, were the state not checked whole
+    with pytest.raises(ValueError, match=r"site\.soc"):
+        env.load_state_dict(bad)
+    assert all(torch.equal(v, before[k]) for k, v in env.state_dict().items())

@@ -111,7 +111,7 @@ class TabularAgentConfig(AgentConfig):
         check_range(f"{path}.eps_start", self.eps_start, 0.0, 1.0)
         check_range(f"{path}.eps_end", self.eps_end, 0.0, self.eps_start,
                     allowed=f"[0, eps_start = {self.eps_start}]")
-        check_range(f"{path}.eps_decay_episodes", self.eps_decay_episodes, 1, None)
+        check_range(f"{path}.eps_decay_episodes", self.eps_decay_episodes, 1, 10**9)
         return self
 
     def epsilon(self, round_idx: int) -> float:
@@ -152,9 +152,9 @@ class DQNAgentConfig(AgentConfig):
         check_range(f"{path}.eps_start", self.eps_start, 0.0, 1.0)
         check_range(f"{path}.eps_end", self.eps_end, 0.0, self.eps_start,
                     allowed=f"[0, eps_start = {self.eps_start}]")
-        check_range(f"{path}.eps_decay_frames", self.eps_decay_frames, 1, None)
-        check_range(f"{path}.steps_per_round", self.steps_per_round, 1, None)
-        check_range(f"{path}.updates_per_round", self.updates_per_round, 0, None)
+        check_range(f"{path}.eps_decay_frames", self.eps_decay_frames, 1, 10**12)
+        check_range(f"{path}.steps_per_round", self.steps_per_round, 1, 1_000_000)
+        check_range(f"{path}.updates_per_round", self.updates_per_round, 0, 1_000_000)
         check_range(f"{path}.n_steps", self.n_steps, 1, 1000)
         check_range(f"{path}.reward_scale", self.reward_scale, 1e-6, 1e6, allowed="[1e-06, 1e6]")
         check_choice(f"{path}.anchor", self.anchor, ANCHORS)
@@ -209,7 +209,7 @@ class NetworkConfig:
         check_range(f"{path}.batch_size", self.batch_size, 1, self.buffer_size,
                     allowed=f"[1, buffer_size = {self.buffer_size}]")
         check_range(f"{path}.buffer_size", self.buffer_size, 1, 100_000_000)
-        check_range(f"{path}.target_update", self.target_update, 1, None)
+        check_range(f"{path}.target_update", self.target_update, 1, 10**9)
         check_range(f"{path}.grad_clip", self.grad_clip, 0.0, None)
         check_range(f"{path}.tau", self.tau, 0.0, 1.0)
         check_choice(f"{path}.lr_decay", self.lr_decay, LR_DECAYS)

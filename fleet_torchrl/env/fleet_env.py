@@ -43,6 +43,15 @@ else (``2``, ``-1``, ``0.7``, NaN, a missing action, the wrong number of actions
 one-line ``ValueError`` naming the value. ``num_sites`` is an integer >= 1 and a seed an
 integer in ``[0, 2**32 - 1]`` (the counter-based random numbers hash 32 bits of it: a larger
 seed would silently alias a smaller one).
+
+A site that has terminated (failed) is reset before its next step: a step of it is refused
+with a one-line ``ValueError`` (:meth:`FleetChargingEnv.ended`). ``step_and_maybe_reset``,
+``rollout`` and TorchRL's collectors reset done sites (``_reset`` mask) and so never meet it;
+a loop that plays each site's episode to its end passes TorchRL's partial-step mask
+``"_step"`` (the sites still running), and the others stay as they are (reward 0, their
+flags as they stand). Observations always lie inside their spec, ``Bounded(0, 1)``. A
+loaded state (:meth:`FleetChargingEnv.load_state_dict`) is checked first: every entry's
+type, shape and range, NaN and inf refused.
 """
 
 from __future__ import annotations
@@ -149,6 +158,25 @@ def check_env_memory(site: SiteConfig, num_sites: int) -> None:
                  "the environment's sites")
 
 
+def check_env_device(device: Any) -> None:
+    """``device`` is a torch device this machine has (``cpu``, ``cuda``, ``cuda:N``, ``mps``),
+    or a one-line ``ValueError`` (``ConfigError``) naming ``device`` and what is allowed or
+    available here, not torch's own error at the first tensor."""
+    from ..utils.checks import check_device
+
+    check_device("device", str(device) if isinstance(device, torch.device) else device)
+
+
+def check_site_starts(site: SiteConfig, num_sites: int, mdp: MDPConfig | None = None,
+                      seed: int = 0, encoding: str = "partial") -> None:
+    """Start the first episodes of a training environment of ``num_sites`` sites (on the
+    CPU, the same draws as on any device): a site whose initial states keep failing before
+    their first decision is refused here, in one line
+    (:class:`~fleet_torchrl.utils.checks.ConfigError`), before a run starts."""
+    FleetChargingEnv(site=site, encoding=encoding, num_sites=num_sites, mdp=mdp,
+                     seed=seed).reset()
+
+
 def step_ticks(td: TensorDictBase) -> torch.Tensor:
     """Ticks of each step of a rollout or batch: ``next.ticks - ticks`` (``[..., 1]``)."""
     return td.get(("next", "ticks")) - td.get("ticks")
@@ -179,6 +207,7 @@ class FleetChargingEnv(EnvBase):
         site = SiteConfig.coerce(site)
         mdp = MDPConfig.coerce(mdp)
         check_env_memory(site, num_sites)
+        check_env_device(device)
         super().__init__(device=device, batch_size=torch.Size([num_sites]))
         self.fused = _fused.use_fused(self.device, fused)
         self.site_cfg = site
@@ -215,6 +244,24 @@ class FleetChargingEnv(EnvBase):
         self._queue = torch.zeros(b, dtype=torch.int64, device=dev)
         self.state, _ = self.site.init_state(self._seed, self._arange)
 
+    def __repr__(self) -> str:
+        """What the environment simulates, in a few short lines: batch, site, encoding,
+        objective, device and backend."""
+        c, m = self.site_cfg, self.mdp
+        site = (f"site={c.name!r} (n_nodes={c.n_nodes}, n_vehicles={c.n_vehicles}, "
+                f"p_c={c.p_c}, t_c={c.t_c}, soc_low={c.soc_low}, e_move={c.e_move})")
+        if c.randomized:
+            drawn = ", ".join(f"{k}={getattr(c.ranges, k)}" for k in c.ranges.varied())
+            site += f",\n    drawn per site: {drawn}"
+        n_obs = self.observation_spec["observation"].shape[-1]
+        terms = (f"gamma={m.gamma}, p_f={m.p_f}, p_q={m.p_q}" if m.reward == "thesis" else
+                 f"gamma_tick={m.gamma_tick}, rho={m.rho}, p_f={m.p_f}")
+        return (f"{type(self).__name__}(batch_size=[{self.num_sites}], device={self.device}, "
+                f"backend={'fused' if self.fused else 'eager'},\n"
+                f"    {site},\n"
+                f"    encoding={self.encoding.name!r} ({n_obs} features), "
+                f"reward={m.reward!r} (tau_e={m.tau_e}, {terms}))")
+
     # ------------------------------------------------------------------ TorchRL hooks
     def _set_seed(self, seed: int | None) -> None:
         self._seed = rng.training_seed(check_seed(seed) if seed is not None else 0)
@@ -235,20 +282,61 @@ class FleetChargingEnv(EnvBase):
         b = self.num_sites
         s, m = self.state, self.mdp
         action = check_actions(tensordict.get("action", None), b).to(self.device)
-        self.site.decide(s, torch.ones(b, dtype=torch.bool, device=self.device), action)
-        # every site to its next decision, failure or tau_e (one kernel call, or tick by tick)
-        ev = advance(self.site, s, self._hash, m.tau_e, fused=self.fused)
+        stepping = self._stepping(tensordict)
+        if stepping is None:
+            self.site.decide(s, torch.ones(b, dtype=torch.bool, device=self.device), action)
+            # every site to its next decision, failure or tau_e (one kernel call, or tick by
+            # tick)
+            ev = advance(self.site, s, self._hash, m.tau_e, fused=self.fused)
+            terminated = ev.failed
+            reward = m.objective.reward(ev, m)
+        else:  # a partial step (TorchRL's "_step"): the other sites stay as they are
+            self.site.decide(s, stepping, action)
+            run = _fused.advance if self.fused else advance_eager
+            ev = run(self.site, s, self._hash, m.tau_e, active=stepping)
+            terminated = torch.where(stepping, ev.failed, self.ended())
+            reward = torch.where(stepping, m.objective.reward(ev, m), 0.0)
         self._trips += ev.trips
         self._queue += ev.queue
-        terminated = ev.failed
         truncated = (s.tick >= m.tau_e) & ~terminated
         td = self._observe()
-        td.set("reward", m.objective.reward(ev, m).unsqueeze(-1))
+        td.set("reward", reward.unsqueeze(-1))
         td.set("terminated", terminated.unsqueeze(-1))
         td.set("truncated", truncated.unsqueeze(-1))
         td.set("done", (terminated | truncated).unsqueeze(-1))
         td.set("is_init", torch.zeros_like(terminated).unsqueeze(-1))
         return td
+
+    def ended(self) -> torch.Tensor:
+        """Which sites have terminated (failed) and not been reset since: ``[B]`` bool. A
+        failed site has a vehicle below ``soc_low``; every other state has none."""
+        return (self.state.soc < self.site.soc_low).any(0)
+
+    def _stepping(self, tensordict: TensorDictBase) -> torch.Tensor | None:
+        """The sites this step advances: those of TorchRL's partial-step mask ``"_step"``
+        (``rollout(break_when_all_done=True)`` writes it; a loop that plays each site's
+        episode to its end sets it to the sites still running), None for all of them.
+        A terminated site that was not reset is refused with a one-line ``ValueError``:
+        stepping it would run a failed site on (its soc below zero, its observation outside
+        the observation spec)."""
+        mask = tensordict.get("_step", None)
+        if mask is not None:
+            mask = torch.as_tensor(mask, device=self.device).to(torch.bool).reshape(
+                self.num_sites)
+        ended = self.ended()
+        if mask is not None:
+            ended = ended & mask
+        if bool(ended.any()):
+            sites = ended.nonzero().reshape(-1).tolist()
+            which = ", ".join(map(str, sites[:5])) + (", ..." if len(sites) > 5 else "")
+            raise ValueError(
+                f"site(s) {which} of {self.num_sites} terminated and were not reset: reset "
+                "them before their next step (env.reset(td) with a '_reset' mask of the done "
+                "sites, as step_and_maybe_reset and TorchRL's collectors do) or leave them "
+                "out of it with a '_step' mask")
+        if mask is None or bool(mask.all()):
+            return None
+        return mask
 
     # ------------------------------------------------------------------ checkpoints
     _DYNAMIC = ("pos", "soc", "left", "charge", "tick")
@@ -273,6 +361,7 @@ class FleetChargingEnv(EnvBase):
         that lacks any, as ``nn.Module`` does, except the sites' drawn parameters, which are
         kept if absent either way."""
         state_dict = dict(state_dict)
+        self.check_state_dict(state_dict)  # before anything is changed
         dev = self.device
         required = [f"site.{name}" for name in self._DYNAMIC]
         required += ["site.hash", "site.trips", "site.queue", "seed"]
@@ -287,14 +376,67 @@ class FleetChargingEnv(EnvBase):
             if key == "seed":
                 self._seed = int(v)
                 continue
-            v = v.to(dev).clone()
             if key.startswith("site.params."):
-                setattr(self.state.params, key.removeprefix("site.params."), v)
+                obj, attr = self.state.params, key.removeprefix("site.params.")
             elif key in ("site.hash", "site.trips", "site.queue"):
-                setattr(self, "_" + key.removeprefix("site."), v)
+                obj, attr = self, "_" + key.removeprefix("site.")
             else:
-                setattr(self.state, key.removeprefix("site."), v)
+                obj, attr = self.state, key.removeprefix("site.")
+            # (the dtype of the entry it replaces: an int32 soc counter would reach the kernel)
+            setattr(obj, attr, v.to(dev, getattr(obj, attr).dtype).clone())
         return super().load_state_dict(state_dict, strict=strict, assign=assign)
+
+    def _state_bounds(self) -> dict[str, tuple[str, tuple[int, ...], float, float]]:
+        """Each entry of :meth:`state_dict`: its kind (``int``, ``float``, ``bool``), shape
+        and bounds. A failed site's soc lies below ``soc_low`` by at most one tick's cost
+        (both at most 100): every soc is in ``[-100, 100]``."""
+        v, b = self.state.pos.shape
+        cfg = self.site_cfg
+        t_c_max = max(cfg.t_c, *(cfg.ranges.t_c or ())) if cfg.ranges is not None else cfg.t_c
+        vb, bb = (v, b), (b,)
+        return {
+            "episodes": ("int", bb, 0, 2**62), "site.pos": ("int", vb, 0, self.site.park),
+            "site.soc": ("float", vb, -100.0, 100.0), "site.left": ("int", vb, 0, t_c_max),
+            "site.charge": ("bool", bb, 0, 1), "site.tick": ("int", bb, 0, 2**62),
+            "site.params.n_vehicles": ("int", bb, 1, v),
+            "site.params.t_c": ("int", bb, 1, t_c_max),
+            "site.params.gain": ("float", bb, 0.0, 100.0),
+            "site.params.closure": ("int", bb, 0, 2**32),
+            "site.params.p_c": ("float", bb, 0.0, 1.0),
+            "site.hash": ("int", bb, 0, 2**32 - 1), "site.trips": ("int", bb, 0, 2**62),
+            "site.queue": ("int", bb, 0, 2**62), "seed": ("int", (), 0, MAX_SEED)}
+
+    def check_state_dict(self, state_dict: dict) -> None:
+        """Refuse, in one line (``ValueError``) naming the entry, a state that is not one of
+        this environment's: an entry of another type or shape, NaN or inf, a value out of
+        its range (a negative seed, a soc above 100, a vehicle on no node). Entries that are
+        absent are not checked (:meth:`load_state_dict` decides about them)."""
+        for key, (kind, shape, lo, hi) in self._state_bounds().items():
+            if key not in state_dict:
+                continue
+            v = state_dict[key]
+            name = f"state_dict[{key!r}]"
+            if key == "seed" and isinstance(v, numbers.Integral) and not isinstance(v, bool):
+                v = torch.tensor(int(v))
+            if not isinstance(v, torch.Tensor):
+                raise ValueError(f"{name}={v!r:.60} is invalid: allowed a tensor of {kind} "
+                                 f"values, shape {list(shape)}")
+            ok_kind = {"bool": v.dtype == torch.bool,
+                       "float": v.dtype.is_floating_point,
+                       "int": v.dtype in _INT_DTYPES}[kind]
+            if not ok_kind or tuple(v.shape) != shape:
+                raise ValueError(f"{name} of dtype {v.dtype} and shape {list(v.shape)} is "
+                                 f"invalid: allowed {kind} values, shape {list(shape)}")
+            if kind == "bool" or v.numel() == 0:
+                continue
+            w = v.detach().to("cpu", torch.float64 if kind == "float" else torch.int64)
+            bad = ~torch.isfinite(w) | (w < lo) | (w > hi) if kind == "float" else \
+                (w < lo) | (w > hi)
+            if bool(bad.any()):
+                first = w[bad].reshape(-1)[0].item()
+                raise ValueError(f"{name} holds {first:g}: allowed finite values in "
+                                 f"[{lo:g}, {hi:g}]" if kind == "float" else
+                                 f"{name} holds {first}: allowed integers in [{lo}, {hi}]")
 
     def current(self) -> TensorDictBase:
         """The observation and counters of the sites as they stand (no step, no reset)."""
@@ -302,9 +444,11 @@ class FleetChargingEnv(EnvBase):
 
     # ------------------------------------------------------------------ internals
     def _observe(self) -> TensorDictBase:
+        # inside Bounded(0, 1) always: a failed site's last observation may read a soc
+        # below zero (a vehicle that fails on a tick costing more than soc_low)
         return TensorDict(
             {
-                "observation": self.encoding(self.site, self.state),
+                "observation": self.encoding(self.site, self.state).clamp_(0.0, 1.0),
                 "trips": self._trips.unsqueeze(-1).clone(),
                 "queue_ticks": self._queue.unsqueeze(-1).clone(),
                 "ticks": self.state.tick.unsqueeze(-1).clone(),
@@ -334,5 +478,8 @@ class FleetChargingEnv(EnvBase):
             if not bool(failed.any()):
                 return
             todo = failed
-        raise RuntimeError(f"{_MAX_REDRAWS} initial states in a row failed before their first "
-                           "decision: raise site.xi or lower the energy costs")
+        from ..utils.checks import ConfigError
+
+        raise ConfigError(f"the site cannot start its episodes: {_MAX_REDRAWS} initial "
+                          "states in a row failed before their first decision; raise site.xi "
+                          "or lower site.e_move, site.e_idle")

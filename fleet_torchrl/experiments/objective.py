@@ -51,7 +51,8 @@ def mdp_score(policy: Policy, site_cfg: SiteConfig, mdp_cfg: MDPConfig, n_sites:
     ticks = torch.zeros_like(trips)
     failed = torch.zeros_like(done)
     while not bool(done.all()):
-        nxt = env.step(td.set("action", policy(td["observation"])))["next"]
+        td = td.set("action", policy(td["observation"])).set("_step", ~done)
+        nxt = env.step(td)["next"]  # a finished site stays as it is
         live = ~done
         reward += nxt["reward"].squeeze(-1) * live
         steps += live

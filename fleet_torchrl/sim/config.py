@@ -4,7 +4,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ..utils.checks import ConfigError, check_known_fields, check_range, validate_on_init
+from ..utils.checks import (
+    ConfigError,
+    as_number,
+    check_known_fields,
+    check_range,
+    validate_on_init,
+)
 from ..utils.paths import check_label
 
 MAX_NODES = 62  # occupancy of a site is one 64-bit mask
@@ -34,16 +40,18 @@ class SiteRanges:
             if r is None:
                 continue
             if not isinstance(r, (list, tuple)) or len(r) != 2 or \
-                    not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in r):
+                    any(as_number(v) is None for v in r):
                 raise ConfigError(f"{path}.{name}={r!r} is invalid: allowed [low, high] "
                                   "with low <= high, or null (the site's own value)")
-            if name != "p_c" and not all(float(v).is_integer() for v in r):
+            # an integer parameter takes integers, not floats (3.0 would reach torch's
+            # integer draws as a float)
+            if name != "p_c" and not all(isinstance(as_number(v), int) for v in r):
                 raise ConfigError(f"{path}.{name}={list(r)} is invalid: allowed integers")
+            for k, v in enumerate(r):
+                check_range(f"{path}.{name}[{k}]", v, lo, hi)
             if r[0] > r[1]:
                 raise ConfigError(f"{path}.{name}={list(r)} is invalid: allowed [low, high] "
                                   "with low <= high, or null (the site's own value)")
-            for k, v in enumerate(r):
-                check_range(f"{path}.{name}[{k}]", v, lo, hi)
         return self
 
     def varied(self) -> list[str]:

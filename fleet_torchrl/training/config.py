@@ -48,14 +48,14 @@ class TrainConfig:
         validate_on_init(self)
 
     def validate(self, path: str = "train") -> TrainConfig:
-        check_range(f"{path}.max_episodes", self.max_episodes, 1, None)
-        check_range(f"{path}.eval_every", self.eval_every, 1, None)
+        check_range(f"{path}.max_episodes", self.max_episodes, 1, 10**9)
+        check_range(f"{path}.eval_every", self.eval_every, 1, 10**6)
         check_range(f"{path}.eval_sims", self.eval_sims, 1, 10**7)
         check_range(f"{path}.eval_ticks", self.eval_ticks, 1, 10**8)
         check_range(f"{path}.eval_seed", self.eval_seed, 0, 2**32 - 1)
         check_choice(f"{path}.select", self.select, SELECTIONS)
-        check_range(f"{path}.patience", self.patience, 0, None)
-        check_range(f"{path}.checkpoint_every", self.checkpoint_every, 1, None)
+        check_range(f"{path}.patience", self.patience, 0, 10**6)
+        check_range(f"{path}.checkpoint_every", self.checkpoint_every, 1, 10**6)
         check_range(f"{path}.threads", self.threads, 0, 1024)
         check_device(f"{path}.device", self.device)
         check_choice(f"{path}.defer", self.defer, DEFERRALS)

@@ -266,8 +266,8 @@ class Trainer:
         t = 0
         while (steps is None and bool(live.any())) or (steps is not None and t < steps):
             td = learner.act(td)
-            if steps is None:
-                td = env.step(td)
+            if steps is None:  # the sites whose episode is over stay as they are
+                td = env.step(td.set("_step", live))
                 root = env.step_mdp(td)
             else:
                 td, root = env.step_and_maybe_reset(td)

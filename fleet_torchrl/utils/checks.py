@@ -100,14 +100,51 @@ def validate_on_init(obj: Any) -> None:
 
 
 def _fmt(v: Any) -> str:
-    return repr(v) if isinstance(v, str) else f"{v}"
+    if isinstance(v, str):
+        return repr(v) if len(v) <= 80 else repr(v[:77]) + "..."
+    if isinstance(v, int) and not isinstance(v, bool) and abs(v) >= 10**30:
+        return f"an integer of about {int(v.bit_length() * 0.30103) + 1} digits"
+    return f"{v}"
+
+
+def as_number(value: Any) -> int | float | None:
+    """``value`` as a plain Python ``int`` or ``float`` if it is one number, else None.
+
+    A numpy scalar or 0-d array and a 0-d (or one-element) torch tensor are unwrapped; any
+    other real number (``Fraction``, ``Decimal``...) becomes a ``float``. ``bool`` (also
+    numpy's and a bool tensor), a string, None, a container are no number. NaN and inf stay
+    what they are: :func:`check_range` refuses them."""
+    if isinstance(value, bool):
+        return None
+    if isinstance(value, int):
+        return int(value)
+    if isinstance(value, float):  # np.float64 is a float: plain float, same value
+        return float(value)
+    shape, item = getattr(value, "shape", None), getattr(value, "item", None)
+    if shape is not None and callable(item):  # numpy scalar or array, torch tensor
+        try:
+            v = item() if math.prod(tuple(shape)) == 1 else None
+        except (TypeError, ValueError, RuntimeError):
+            return None
+        return None if isinstance(v, bool) or not isinstance(v, (int, float)) else v
+    if isinstance(value, numbers.Integral):
+        return int(value)
+    if isinstance(value, numbers.Real):
+        try:
+            return float(value)
+        except (TypeError, ValueError, OverflowError):
+            return None
+    return None
 
 
 def check_range(path: str, value: Any, lo: float | None = None, hi: float | None = None,
                 allowed: str | None = None) -> None:
-    """Raise :class:`ConfigError` unless ``lo <= value <= hi`` (and finite)."""
-    bad = value is None or (isinstance(value, float) and not math.isfinite(value))
-    bad = bad or (lo is not None and value < lo) or (hi is not None and value > hi)
+    """Raise :class:`ConfigError` unless ``value`` is a finite number with
+    ``lo <= value <= hi``: NaN and inf are refused in every numeric type (Python, numpy
+    scalars, 0-d torch tensors), and so are ``bool``, strings and None (:func:`as_number`)."""
+    v = as_number(value)
+    bad = v is None or (isinstance(v, float) and not math.isfinite(v))
+    bad = bad or (lo is not None and v < lo) or (hi is not None and v > hi)
     if bad:
         if allowed is None:
             lo_s = "-inf" if lo is None else _fmt(lo)
@@ -144,7 +181,26 @@ def check_device(path: str, device: str) -> None:
     except (RuntimeError, TypeError):
         raise ConfigError(
             f"{path}={_fmt(device)} is invalid: allowed cpu, cuda, cuda:N, mps") from None
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise ConfigError(f"{path}={_fmt(device)} is invalid: CUDA is not available here; use cpu")
     if dev.type not in ("cpu", "cuda", "mps"):
         raise ConfigError(f"{path}={_fmt(device)} is invalid: allowed cpu, cuda, cuda:N, mps")
+    problem = device_problem(dev)
+    if problem is not None:
+        raise ConfigError(f"{path}={_fmt(device)} is invalid: {problem}")
+
+
+def device_problem(dev: Any) -> str | None:
+    """Why the torch device ``dev`` cannot be used on this machine (what to use instead), or
+    None if it can: CUDA or MPS not available here, a CUDA index beyond the devices there."""
+    import torch
+
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            return "CUDA is not available here; use cpu"
+        n = torch.cuda.device_count()
+        if dev.index is not None and dev.index >= n:
+            return f"this machine has {n} CUDA device(s); allowed cuda:0 to cuda:{n - 1}"
+    if dev.type == "mps":
+        mps = getattr(torch.backends, "mps", None)
+        if mps is None or not mps.is_available():
+            return "MPS is not available here; use cpu"
+    return None

@@ -10,6 +10,7 @@ from torchrl.envs.utils import check_env_specs
 from fleet_torchrl.agents import HeuristicPolicy, RulePolicy, as_td_module
 from fleet_torchrl.env import FleetChargingEnv, MDPConfig, discount_exponent, step_ticks
 from fleet_torchrl.sim import D, SiteConfig
+from fleet_torchrl.sim.config import SiteRanges
 
 
 @pytest.mark.parametrize("encoding", ["partial", "all"])
@@ -159,3 +160,82 @@ def test_same_seed_same_rollout_and_new_seed_differs():
     assert torch.equal(a["next", "observation"], b["next", "observation"])
     assert torch.equal(a["next", "reward"], b["next", "reward"])
     assert not torch.equal(a["next", "observation"], c["next", "observation"])
+
+
+# a site that fails often, with a soc below zero at its failure (a move costs 40 of a soc
+# that may start at 10): what once put observations outside Bounded(0, 1)
+DEEP_FAILS = SiteConfig(soc_low=10.0, xi=0.0, e_move=40.0)
+
+
+def _step_until_a_site_fails(env, td):
+    for _ in range(100):
+        td = env.step(td.set("action", torch.zeros(env.num_sites, dtype=torch.int64)))
+        if td["next", "terminated"].any():
+            return td
+        td = env.step_mdp(td)
+    raise AssertionError("no site failed")
+
+
+def test_a_terminated_site_is_stepped_only_after_its_reset():
+    env = FleetChargingEnv(site=SiteConfig(e_move=5.0, xi=60.0, soc_low=30.0), num_sites=4,
+                           seed=0)
+    td = _step_until_a_site_fails(env, env.reset())
+    ended = td["next", "terminated"].squeeze(-1)
+    assert torch.equal(env.ended(), ended)
+    root = env.step_mdp(td).set("action", torch.zeros(4, dtype=torch.int64))
+    with pytest.raises(ValueError, match="terminated and were not reset: reset them") as e:
+        env.step(root.clone())
+    assert "\n" not in str(e.value)
+    # left out with TorchRL's partial-step mask, a terminated site stays as it is
+    before = env.state.clone()
+    out = env.step(root.clone().set("_step", ~ended))["next"]
+    assert torch.equal(env.state.soc[:, ended], before.soc[:, ended])
+    assert torch.equal(out["ticks"][ended], root["ticks"][ended])
+    assert (out["reward"][ended] == 0).all() and out["terminated"][ended].all()
+    # reset (only the done sites, as step_and_maybe_reset does), it steps again
+    done = out["done"].squeeze(-1) | ended
+    env.reset(out.clone().set("_reset", done.unsqueeze(-1)))
+    assert not env.ended().any()
+    env.step(env.current().set("action", torch.zeros(4, dtype=torch.int64)))
+
+
+def test_observations_stay_inside_their_spec_on_a_site_that_fails():
+    env = FleetChargingEnv(site=DEEP_FAILS, num_sites=16, seed=0)
+    spec = env.observation_spec["observation"]
+    td = env.rollout(60, as_td_module(RulePolicy()), break_when_any_done=False)
+    assert td["next", "terminated"].sum() >= 5  # it fails, often
+    for obs in (td["observation"], td["next", "observation"]):
+        assert spec.is_in(obs[:, 0]) and obs.min() >= 0 and obs.max() <= 1
+    # at its failure a vehicle's soc went below zero: the feature reads 0, not below
+    fails = FleetChargingEnv(site=DEEP_FAILS, num_sites=64, seed=1, encoding="all")
+    td = _step_until_a_site_fails(fails, fails.reset())
+    assert (fails.state.soc < 0).any(), "no soc below zero: the case is not exercised"
+    assert td["next", "observation"].min() >= 0
+
+
+def test_every_episode_plays_to_its_end_with_partial_steps():
+    """TorchRL's ``rollout(break_when_all_done=True)`` steps only the sites still running
+    (its ``"_step"`` mask): no site is stepped after it terminated, and each one ends."""
+    env = FleetChargingEnv(site=DEEP_FAILS, num_sites=8, seed=2, mdp=MDPConfig(tau_e=400))
+    td = env.rollout(500, as_td_module(RulePolicy()), break_when_any_done=False,
+                     break_when_all_done=True)
+    assert td["next", "done"].any(-2).all()  # every site's episode ended
+    assert env.observation_spec["observation"].is_in(td["next", "observation"][:, -1])
+    check_env_specs(env, seed=0)
+
+
+def test_the_env_says_what_it_simulates():
+    env = FleetChargingEnv(site=SiteConfig(name="mine", p_c=0.5), encoding="all", num_sites=3,
+                           mdp=MDPConfig(reward="throughput"))
+    text = repr(env)
+    assert text == str(env) and len(text.splitlines()) <= 4
+    for part in ("FleetChargingEnv(", "batch_size=[3]", "device=cpu", "site='mine'",
+                 "p_c=0.5", "n_vehicles=3", "encoding='all' (16 features)",
+                 "reward='throughput'", "tau_e=3000", "gamma_tick=0.998"):
+        assert part in text, (part, text)
+    drawn = repr(FleetChargingEnv(site=SiteConfig(ranges=SiteRanges(t_c=[10, 50]))))
+    assert "drawn per site: t_c=[10, 50]" in drawn and "reward='thesis'" in drawn
+
+
+def test_specs_hold_on_a_site_that_fails():
+    check_env_specs(FleetChargingEnv(site=DEEP_FAILS, num_sites=8, seed=0), seed=0)
