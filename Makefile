@@ -10,6 +10,8 @@ ARGS   ?=
 # optional-dependency groups that make install adds (CI adds ray)
 EXTRAS ?= dev,cluster,gym
 PYTEST_ARGS ?=
+# test workers (pytest-xdist): one per core by default; PYTEST_WORKERS=0 runs in this process
+PYTEST_WORKERS ?= auto
 
 .PHONY: help install test test-fast lint format table quick train evaluate grid bench tensorboard clean \
         policies policy-maps sweep-pc sweep-tc sweep-nv sweeps experiments report objective
@@ -26,11 +28,11 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet -e '.[$(EXTRAS)]'
 	@touch $(STAMP)
 
-test: $(STAMP)  ## run the whole test suite (slow end-to-end tests included)
-	$(PY) -m pytest $(PYTEST_ARGS)
+test: $(STAMP)  ## run the whole test suite (slow end-to-end tests included), one worker per core
+	$(PY) -m pytest -n $(PYTEST_WORKERS) $(PYTEST_ARGS)
 
 test-fast: $(STAMP)  ## run the tests not marked slow
-	$(PY) -m pytest -m "not slow" $(PYTEST_ARGS)
+	$(PY) -m pytest -n $(PYTEST_WORKERS) -m "not slow" $(PYTEST_ARGS)
 
 lint: $(STAMP)  ## ruff
 	$(PY) -m ruff check fleet_torchrl tests hydra_plugins

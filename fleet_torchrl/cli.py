@@ -289,13 +289,14 @@ def _check_job(config: Any, dir_key: str, subdir_key: str | None = None,
     refers to the run folder, resolved here ahead of ``run_job``, is validated again
     there), None otherwise. ``outputs`` collects ``(what, absolute path, label)`` of what
     the job writes outside its run folder (its command's ``output_paths``); ``claim``: hold
-    the run folder now (its command's ``claim``), a single run's only."""
+    the run folder now (its command's ``claim``), a single run's only; a multirun's job whose
+    command claims its folder is refused if another process holds that folder now."""
     import copy
 
     from omegaconf.errors import OmegaConfBaseException
 
     from .utils.cli import USER_ERRORS, single_line
-    from .utils.paths import check_output
+    from .utils.paths import check_not_held, check_output
 
     prefix = f"{label}: " if label else ""
     handed: Config | None = None
@@ -315,8 +316,11 @@ def _check_job(config: Any, dir_key: str, subdir_key: str | None = None,
             if outputs is not None and paths is not None:
                 outputs += [(what, os.path.abspath(p), label) for what, p in paths(cfg)]
             hold = command_hook(str(job_cfg.hydra.job.name), "claim")
-            if claim and hold is not None and job.run_dir is not None:
-                hold(cfg, job.run_dir)
+            if hold is not None and job.run_dir is not None:
+                if claim:
+                    hold(cfg, job.run_dir)
+                else:  # a multirun's job holds its folder in its own process: in use now?
+                    check_not_held(job.run_dir)
     except OmegaConfBaseException:  # resolvable in the run only: the task validates
         return None
     except USER_ERRORS as e:  # a bad value: one line, exit code 2, no run folder

@@ -11,6 +11,16 @@ from fleet_torchrl.sim import Site, SiteConfig, SiteState
 register_configs()  # tests that call Hydra's compose directly need the schemas
 
 
+@pytest.fixture(autouse=True)
+def _no_launching_pid(monkeypatch):
+    """Every test starts without ``FLEET_TORCHRL_RUN_PID``, and what a multirun run in this
+    process sets there (``config.mark_multirun``) is undone after it: left set, it would name
+    a later test's run folders after this process instead of their own command's."""
+    from fleet_torchrl.config import RUN_PID
+
+    monkeypatch.delenv(RUN_PID, raising=False)
+
+
 @pytest.fixture
 def site() -> Site:
     """The default site on the CPU."""

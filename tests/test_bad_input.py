@@ -1120,6 +1120,34 @@ def test_a_training_in_a_held_folder_is_refused_before_hydra_writes(tmp_path, mo
         holder.wait()
 
 
+def test_a_multirun_job_whose_folder_is_held_is_refused_before_any_job(tmp_path, monkeypatch,
+                                                                       command, capsys):
+    """A multirun's jobs hold their folders in their own processes, after Hydra has written
+    ``.hydra/`` there: the launching command refuses a job whose folder another process
+    holds now, in one line, before any job starts or writes."""
+    from fleet_torchrl import train
+
+    monkeypatch.chdir(tmp_path)
+    sweep = tmp_path / "sweep"
+    (sweep / "job").mkdir(parents=True)
+    code = ("import sys, time; from fleet_torchrl.utils.paths import hold_run_dir; "
+            "hold_run_dir(sys.argv[1]); print('held', flush=True); time.sleep(600)")
+    holder = subprocess.Popen([sys.executable, "-c", code, str(sweep / "job")],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        before = snapshot(tmp_path)
+        capsys.readouterr()
+        assert command(train.main, "-m", *PUB_FAILS, f"hydra.sweep.dir={sweep}",
+                       "hydra.sweep.subdir=job") == 2
+        line = _one_error_line(capsys.readouterr().err)
+        assert f"in use by process {holder.pid}" in line, line
+        assert snapshot(tmp_path) == before
+    finally:
+        holder.kill()
+        holder.wait()
+
+
 _STALL = """
 import os, sys, time
 real = os.fsync

@@ -49,6 +49,9 @@ class Policy(nn.Module):
     #: whether it can defer to the heuristic where it is unsure (``set_defer_margin``:
     #: a classifier's logit; ``train.defer``)
     can_defer: ClassVar[bool] = False
+    #: whether it decides from the site's state (:meth:`decide` only, no :meth:`forward` of
+    #: an observation): the rollout planner, a guarded policy
+    decides_from_state: ClassVar[bool] = False
 
     def policy_spec(self) -> dict[str, Any]:
         """Constructor arguments a policy file stores to rebuild this policy (JSON-ready)."""
@@ -171,14 +174,52 @@ class PolicyModule(TensorDictModuleBase):
         return tensordict
 
 
+class SiteStateModule(PolicyModule):
+    """A policy that decides from the site's state (``Policy.decides_from_state``: the
+    rollout planner, a guarded policy) as a TensorDict module bound to the environment it
+    acts in: each call decides for every site of ``env`` at its current state, which is the
+    state the TensorDict's observation encodes when ``env`` is stepped in this process
+    (``env.rollout``, a ``Collector`` of ``env`` itself; not a collector of copies in other
+    processes, which hold states of their own)."""
+
+    def __init__(self, policy: Policy, env: Any, obs_key: str = "observation",
+                 action_key: str = "action") -> None:
+        super().__init__(policy, obs_key, action_key)
+        for attr in ("site", "state", "num_sites"):
+            if not hasattr(env, attr):
+                raise ValueError(f"as_td_module(env=...) needs a FleetChargingEnv, not a "
+                                 f"{type(env).__name__}")
+        self.__dict__["env"] = env  # not a submodule: the env is not the module's to move
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        env = self.env
+        if tuple(tensordict.batch_size) != (env.num_sites,):
+            raise ValueError(f"a {self.module.name} policy bound to an env of "
+                             f"{env.num_sites} sites got a batch of "
+                             f"{tuple(tensordict.batch_size)}: it decides for its env's sites")
+        need = torch.ones(env.num_sites, dtype=torch.bool, device=env.device)
+        ctx = DecisionContext(need, torch.arange(env.num_sites, device=env.device),
+                              getattr(env, "fused", None))
+        act = self.module.decide(env.site, env.state, ctx).to(torch.int64)
+        tensordict.set(self.out_keys[0], act)
+        return tensordict
+
+
 def as_td_module(policy: Policy, obs_key: str = "observation", action_key: str = "action",
-                 action_spec: Any = None) -> TensorDictModuleBase:
+                 action_spec: Any = None, env: Any = None) -> TensorDictModuleBase:
     """Wrap a policy as a TorchRL/TensorDict module (for ``env.rollout``, ``Collector``).
 
     A policy that has Q-values (DQN: :meth:`Policy.td_module`) becomes a Q-value actor that
     also writes ``action_value`` and ``chosen_action_value`` and carries ``action_spec``
     (default: one site's action, ``env.action_spec_unbatched``), what TorchRL's ``DQNLoss``
-    takes; every other policy a :class:`PolicyModule`."""
+    takes; a policy that decides from the site's state needs ``env``, the environment it
+    acts in (:class:`SiteStateModule`); every other policy a :class:`PolicyModule`."""
+    if policy.decides_from_state:
+        if env is None:
+            raise ValueError(f"a {policy.name} policy decides from the site's state, not from "
+                             "an observation: pass the environment it acts in, "
+                             "as_td_module(policy, env=env)")
+        return SiteStateModule(policy, env, obs_key, action_key)
     if action_spec is None:
         from torchrl.data import Categorical
 
@@ -271,6 +312,8 @@ class GuardedPolicy(Policy):
         self.policy = policy
         self.name = policy.name
         self.encoding = policy.encoding
+
+    decides_from_state = True
 
     def forward(self, obs: Tensor) -> Tensor:
         raise TypeError("a guarded policy decides from the site's state: call decide()")

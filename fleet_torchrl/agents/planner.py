@@ -74,6 +74,7 @@ class PlannerPolicy(Policy):
     site's state (:meth:`decide`), not from an encoded observation."""
 
     name = "planner"
+    decides_from_state = True
 
     def __init__(self, base: Policy, rollouts: int = 32, horizon: int = 200,
                  energy_value: float = 0.02, confidence: float = 1.5, seed: int = 0,

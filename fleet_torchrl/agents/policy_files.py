@@ -180,6 +180,12 @@ def read_policy_file(path: str | Path) -> tuple[Path, dict[str, Any]]:
     """The checked bundle of ``policy.pt`` (or of a folder holding one)."""
     path = Path(path)
     if path.is_dir():
+        seeds = sorted((p.parent.name for p in path.glob(f"seed*/{POLICY_FILE}")),
+                       key=lambda name: (len(name), name))
+        if not (path / POLICY_FILE).is_file() and seeds:  # a recipe's folder: one per seed
+            raise FileNotFoundError(
+                f"{path} holds one policy per training seed ({', '.join(seeds)}): name one, "
+                f"e.g. {path / seeds[0]}")
         path = path / POLICY_FILE
     if not path.is_file():
         raise FileNotFoundError(f"no saved policy at {path}; train it first with `make policies` "

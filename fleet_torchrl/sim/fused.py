@@ -73,7 +73,8 @@ class KernelPolicy:
     ``kind``: :data:`THRESHOLD` (``thresholds[r]``: the six float32 thresholds of
     :mod:`fleet_torchrl.sim.kernel`, on the normalised ``partial`` features) or
     :data:`TABLE` (``table[r]``: one action per cell of the discretised ``partial`` state,
-    ``n_tc`` charger bins). Built by :mod:`fleet_torchrl.agents.lowering`.
+    ``n_tc`` charger bins). Built by a policy's ``kernel_policy()`` (threshold, search and
+    tabular policies).
     """
 
     kind: int

@@ -13,7 +13,9 @@ to its publish folder: ``<table.policies_dir>/<name>/seed<s>/`` by default, else
   published meanwhile stays, and this run's stays in its run folder.
 
 A run's own folder (``train.out_dir`` equal to the run folder) is the run's: its best policy
-is saved there while it trains.
+is saved there while it trains. So is what the run itself published before: a finished run
+resumed in its run folder (``resume=true``, e.g. to calibrate its deferral again) replaces
+the policy whose summary names that run folder.
 """
 
 from __future__ import annotations
@@ -67,6 +69,16 @@ def same_folder(a: str | os.PathLike, b: str | os.PathLike | None) -> bool:
     return b is not None and Path(os.path.abspath(a)) == Path(os.path.abspath(b))
 
 
+def published_by(folder: str | os.PathLike) -> str | None:
+    """The run folder the summary in ``folder`` names (``run_dir``), or None."""
+    try:
+        rec = read_json(Path(folder) / SUMMARY)
+    except (OSError, ValueError):
+        return None
+    run = rec.get("run_dir") if isinstance(rec, dict) else None
+    return run if isinstance(run, str) and run else None
+
+
 def check_publish(cfg: Config, out_dir: str | os.PathLike,
                   run_dir: str | os.PathLike | None = None) -> None:
     """Raise :class:`ConfigError` (one line naming the folder) if a training of ``cfg``
@@ -74,6 +86,8 @@ def check_publish(cfg: Config, out_dir: str | os.PathLike,
     check with ``train.overwrite=true`` or when ``out_dir`` is the run's own folder."""
     if cfg.train.overwrite or same_folder(out_dir, run_dir):
         return
+    if cfg.resume and run_dir is not None and same_folder(run_dir, published_by(out_dir)):
+        return  # this run's own publication, resumed
     diff = published_diff(out_dir, cfg)
     if diff is None:
         return

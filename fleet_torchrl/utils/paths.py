@@ -219,6 +219,34 @@ def hold_run_dir(run_dir: str | os.PathLike) -> None:
     _HELD[key] = f
 
 
+def check_not_held(run_dir: str | os.PathLike) -> None:
+    """Raise :class:`SetupError` if another process holds ``run_dir``
+    (:func:`hold_run_dir`), without taking or creating anything: a multirun's job holds its
+    folder only in its own process, after Hydra has written ``.hydra/`` there, so the
+    launching command asks first whether a job's folder is in use."""
+    try:
+        import fcntl
+    except ImportError:  # not POSIX
+        return
+    key = Path(run_dir).resolve() / LOCK
+    if Path(run_dir).resolve() in _HELD or not key.is_file():
+        return
+    try:
+        f = open(key)  # noqa: SIM115 - closed below
+    except OSError:
+        return
+    try:
+        fcntl.flock(f.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        holder = f.read().strip() or "another process"
+        raise SetupError(f"{os.fspath(run_dir)} is in use by {holder}: a run already trains "
+                         "there; stop it first, or give this run another folder") from None
+    except OSError:  # no locks on this file system
+        pass
+    finally:
+        f.close()
+
+
 def release_run_dir(run_dir: str | os.PathLike) -> None:
     """Let go of a folder :func:`hold_run_dir` held (nothing if it holds none)."""
     f = _HELD.pop(Path(run_dir).resolve(), None)
@@ -227,5 +255,5 @@ def release_run_dir(run_dir: str | os.PathLike) -> None:
 
 
 __all__ = ["LABEL", "LABEL_RULE", "LOCK", "NAME", "NAME_MAX", "NAME_RULE", "PSEUDO",
-           "check_input_dir", "check_inside", "check_label", "check_name", "check_output",
-           "hold_run_dir", "is_name", "release_run_dir"]
+           "check_input_dir", "check_inside", "check_label", "check_name", "check_not_held",
+           "check_output", "hold_run_dir", "is_name", "release_run_dir"]

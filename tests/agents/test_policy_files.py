@@ -270,3 +270,21 @@ def test_a_policy_class_without_its_own_spec_check_takes_its_constructors_fields
         Floor.check_policy_spec({})
     with pytest.raises(ConfigError, match="spec must be a dict"):
         Floor.check_policy_spec([4])
+
+
+def test_a_recipes_folder_of_seeds_asks_for_one_seed(tmp_path, saved_policies):
+    """``agent.policy=<a recipe's folder>`` that holds ``seed<s>/policy.pt`` only names no
+    single policy: the error lists the seeds and names the first, rather than 'no policy'."""
+    import shutil
+
+    from fleet_torchrl.agents.policy_files import POLICY_FILE, read_policy_file
+
+    src = tmp_path / "policies" / "dqn_partial" / POLICY_FILE  # the fixture's
+    for s in (10, 2, 0):
+        (tmp_path / "runs" / "dqn_partial" / f"seed{s}").mkdir(parents=True)
+        shutil.copy(src, tmp_path / "runs" / "dqn_partial" / f"seed{s}" / POLICY_FILE)
+    with pytest.raises(FileNotFoundError, match=r"seed0, seed2, seed10\): name one, e\.g\. .*"
+                                                r"dqn_partial/seed0$"):
+        read_policy_file(tmp_path / "runs" / "dqn_partial")
+    path, _ = read_policy_file(tmp_path / "runs" / "dqn_partial" / "seed2")
+    assert path == tmp_path / "runs" / "dqn_partial" / "seed2" / POLICY_FILE

@@ -274,7 +274,7 @@ def test_a_policy_folder_linked_out_of_the_policies_is_not_followed(tmp_path):
                          "table.follow_symlinks=true"])
     assert isinstance(make_policy(ok), TabularQPolicy)
     assert isinstance(load_policies(ok, ["tabular"])["tabular"], TabularQPolicy)
-    assert default_policy_dir(ok) == root / "tabular"
+    assert default_policy_dir(ok) == root / "tabular" / "seed0"
     named = compose_config(["agent=tabular", f"agent.policy={root / 'tabular'}"])
     assert isinstance(make_policy(named), TabularQPolicy)
 

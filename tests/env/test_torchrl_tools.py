@@ -234,3 +234,58 @@ def test_dqn_loss_refuses_a_policy_without_q_values(make):
     policy = make()
     with pytest.raises(ValueError, match=rf"^a {policy.name} policy has no Q-values: DQNLoss"):
         DQNLoss(as_td_module(policy))
+
+
+def _planner():
+    from fleet_torchrl.agents.planner import PlannerPolicy
+
+    return PlannerPolicy(HeuristicPolicy(), rollouts=4, horizon=40)
+
+
+def _guarded():
+    from fleet_torchrl.agents.base import GuardedPolicy
+
+    return GuardedPolicy(RulePolicy())
+
+
+@pytest.mark.parametrize("make", [_planner, _guarded], ids=["planner", "guarded"])
+def test_collector_runs_a_policy_that_decides_from_the_sites_state(make):
+    """The planner and a guarded policy decide from the site's state: bound to the env they
+    act in, they drive a Collector of that env with no warning, each action the policy's
+    decision on the state the observation encodes; unbound, one line says to bind them."""
+    from fleet_torchrl.sim.rollout import DecisionContext
+
+    policy = make()
+    with pytest.raises(ValueError, match=r"decides from the site's state.*env=env\)$"):
+        as_td_module(policy)
+    env = FleetChargingEnv(num_sites=SITES, seed=0)
+    frames = SITES * 4
+    decided = []
+    real = policy.decide
+
+    def decide(site, state, ctx):  # what the policy decided, and on which state
+        act = real(site, state, ctx)
+        decided.append((state.soc.clone(), act.clone()))
+        return act
+
+    policy.decide = decide
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        collector = Collector(env, as_td_module(policy, env=env), frames_per_batch=frames,
+                              total_frames=frames)
+        try:
+            batch = next(iter(collector)).clone()
+        finally:
+            collector.shutdown()
+    assert batch.numel() == frames and batch["next", "ticks"].gt(batch["ticks"]).all()
+    assert len(decided) >= 4  # (the collector may call its policy once to learn its outputs)
+    for t, (_, act) in enumerate(decided[-4:]):  # the collector's actions are the decisions
+        assert torch.equal(batch["action"][:, t], act)
+        assert set(act.tolist()) <= {0, 1}
+    # and a decision equals the policy's own on that state (the planner is deterministic)
+    site, state = env.site, env.state
+    need = torch.ones(SITES, dtype=torch.bool)
+    ctx = DecisionContext(need, torch.arange(SITES), env.fused)
+    assert torch.equal(real(site, state, ctx), real(site, state, ctx))
+    with pytest.raises(ValueError, match="decides for its env's sites"):
+        as_td_module(policy, env=env)(env.reset()[:2])
