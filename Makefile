@@ -35,10 +35,10 @@ test-fast: $(STAMP)  ## run the tests not marked slow
 	$(PY) -m pytest -n $(PYTEST_WORKERS) -m "not slow" $(PYTEST_ARGS)
 
 lint: $(STAMP)  ## ruff
-	$(PY) -m ruff check fleet_torchrl tests hydra_plugins
+	$(PY) -m ruff check fleet_torchrl tests hydra_plugins benchmarks
 
 format: $(STAMP)  ## apply ruff's automatic lint fixes (import order, modern syntax)
-	$(PY) -m ruff check --fix fleet_torchrl tests hydra_plugins
+	$(PY) -m ruff check --fix fleet_torchrl tests hydra_plugins benchmarks
 
 table: $(STAMP)  ## main job: train the recipes over 3 seeds (if missing), compare with rule and heuristic -> results/table; some: ARGS="table.only=[dqn_partial,search]"
 	$(TIMED) table -- $(PY) -m fleet_torchrl.table $(ARGS)

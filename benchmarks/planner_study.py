@@ -1,4 +1,5 @@
-"""The measured study behind the planner's defaults (docs/PLANNER.md).
+"""The measured study behind the planner's defaults (docs/PLANNER.md); a development tool of
+this repository, not part of the package (run it from the repository root).
 
 For each site of a small set (the default site and the sweeps' hardest points) and each
 planner setting (futures per action ``K``, horizon ``H``, the energy's terminal value, the
@@ -15,11 +16,11 @@ import time
 from dataclasses import replace
 from typing import Any
 
-from ..agents.baselines import HeuristicPolicy, RulePolicy
-from ..agents.planner import PlannerPolicy
-from ..evaluation import simulate
-from ..evaluation.results import t95
-from ..sim import SiteConfig
+from fleet_torchrl.agents.baselines import HeuristicPolicy, RulePolicy
+from fleet_torchrl.agents.planner import PlannerPolicy
+from fleet_torchrl.evaluation import simulate
+from fleet_torchrl.evaluation.results import t95
+from fleet_torchrl.sim import SiteConfig
 
 SITES = {"default": {}, "n_vehicles=5": {"n_vehicles": 5}, "t_c=50": {"t_c": 50},
          "p_c=0.2": {"p_c": 0.2}}

@@ -1,6 +1,7 @@
-"""Environment collection of two source trees, A/B in one sitting (docs/BENCHMARKS.md).
+"""Environment collection of two source trees, A/B in one sitting (docs/BENCHMARKS.md); a
+development tool of this repository, not part of the package.
 
-    python -m fleet_torchrl.experiments.bench_ab OLD_TREE NEW_TREE [ROUNDS] [B] [CASE]
+    python benchmarks/bench_ab.py OLD_TREE NEW_TREE [ROUNDS] [B] [CASE]
 
 Each round runs, in a fresh process per tree (its ``PYTHONPATH`` the tree, alternating the
 trees so that a drift of the machine hits both), one case, and prints decisions per second;
