@@ -168,22 +168,6 @@ _CONSTANTS: dict[tuple, Tensor] = {}
 _LIMITS: dict[int, np.ndarray] = {}  # one-value tick limits as the CPU kernel reads them
 
 
-def _site_constants(site: Site, device: torch.device) -> tuple[Tensor, ...]:
-    """``tables`` (successors, bits checked), ``geo`` and ``energy`` of a site as the kernel
-    reads them."""
-    key = ("_kernel_constants", device)
-    cached = site.__dict__.get(key)
-    if cached is None:
-        d_idle, d_move = float(site._delta[0]), float(site._delta[1])
-        geo = torch.tensor([site._stride, site._closed_bit, int(site.leave_when_full)],
-                           dtype=torch.int64)
-        energy = torch.tensor([d_idle, d_move, site.soc_low], dtype=torch.float32)
-        tables = torch.stack((site._succ, site._check))
-        cached = tuple(t.to(device).contiguous() for t in (tables, geo, energy))
-        site.__dict__[key] = cached
-    return cached
-
-
 _STATE = (("pos", torch.int64), ("soc", torch.float32), ("left", torch.int64),
           ("charge", torch.bool), ("tick", torch.int64))
 _PARAMS = (("n_vehicles", torch.int64), ("t_c", torch.int64), ("gain", torch.float32),
@@ -202,7 +186,7 @@ def _site_arrays(site: Site) -> tuple[np.ndarray, ...]:
     cached = site.__dict__.get("_kernel_arrays")
     if cached is None:
         cached = site.__dict__["_kernel_arrays"] = tuple(
-            t.numpy() for t in _site_constants(site, torch.device("cpu")))
+            t.numpy() for t in site.kernel_constants("cpu"))
     return cached
 
 
@@ -381,7 +365,7 @@ def _advance_device(site: Site, state: SiteState, site_hash: Tensor, max_ticks: 
     hsh = site_hash.to(dev, torch.int64).contiguous()
     rows, thr, tab = pol.arrays(dev)
     _check_lengths(b, max_ticks=limit, active=act, policy_rows=rows, site_hash=hsh)
-    tables, geo, energy = _site_constants(site, dev)
+    tables, geo, energy = site.kernel_constants(dev)
     ints = torch.empty(3, b, **kw)
     flags = torch.empty(3, b, dtype=torch.bool, device=dev)
     args = [*_state_tensors(state)[:5], hsh, limit, act, *_state_tensors(state)[5:], tables,
