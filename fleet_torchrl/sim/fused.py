@@ -51,6 +51,7 @@ import torch
 from torch import Tensor
 
 from . import kernel as _k
+from . import kernel_cache
 from .site import Site, SiteState
 
 log = logging.getLogger(__name__)
@@ -237,8 +238,8 @@ def partial_features(state: SiteState) -> Tensor | None:
     pos, soc, left, t_c = arrays[0], arrays[1], arrays[2], arrays[6]
     out = np.empty((pos.shape[1], 3), dtype=np.float32)
     try:
-        _k.call("partial_features", pos, soc, left, t_c, out)
-    except Exception:  # noqa: BLE001 (SetupError, said once by kernel.call: fall back)
+        kernel_cache.call("partial_features", pos, soc, left, t_c, out)
+    except Exception:  # noqa: BLE001 (SetupError, said once by kernel_cache.call: fall back)
         _FEATURES["ok"] = False
         return None
     return torch.from_numpy(out)
@@ -303,9 +304,9 @@ def _advance_cpu(site: Site, state: SiteState, site_hash: Tensor, max_ticks: Ten
         with _pool_lock:
             numba.set_num_threads(threads)
             _pool["pid"] = os.getpid()
-            _k.call("advance_parallel", *args)
+            kernel_cache.call("advance_parallel", *args)
     else:
-        _k.call("advance_serial", *args)
+        kernel_cache.call("advance_serial", *args)
     i, f = [torch.from_numpy(r) for r in ints], [torch.from_numpy(r) for r in flags]
     return Events(ticks=i[0], trips=i[1], queue=i[2], arrived=f[0], failed=f[1], queued=f[2])
 
