@@ -51,6 +51,7 @@ import torch
 from torch import Tensor
 
 from . import kernel as _k
+from . import kernel_cache
 from .site import Site, SiteState
 
 log = logging.getLogger(__name__)
@@ -168,22 +169,6 @@ _CONSTANTS: dict[tuple, Tensor] = {}
 _LIMITS: dict[int, np.ndarray] = {}  # one-value tick limits as the CPU kernel reads them
 
 
-def _site_constants(site: Site, device: torch.device) -> tuple[Tensor, ...]:
-    """``tables`` (successors, bits checked), ``geo`` and ``energy`` of a site as the kernel
-    reads them."""
-    key = ("_kernel_constants", device)
-    cached = site.__dict__.get(key)
-    if cached is None:
-        d_idle, d_move = float(site._delta[0]), float(site._delta[1])
-        geo = torch.tensor([site._stride, site._closed_bit, int(site.leave_when_full)],
-                           dtype=torch.int64)
-        energy = torch.tensor([d_idle, d_move, site.soc_low], dtype=torch.float32)
-        tables = torch.stack((site._succ, site._check))
-        cached = tuple(t.to(device).contiguous() for t in (tables, geo, energy))
-        site.__dict__[key] = cached
-    return cached
-
-
 _STATE = (("pos", torch.int64), ("soc", torch.float32), ("left", torch.int64),
           ("charge", torch.bool), ("tick", torch.int64))
 _PARAMS = (("n_vehicles", torch.int64), ("t_c", torch.int64), ("gain", torch.float32),
@@ -202,7 +187,7 @@ def _site_arrays(site: Site) -> tuple[np.ndarray, ...]:
     cached = site.__dict__.get("_kernel_arrays")
     if cached is None:
         cached = site.__dict__["_kernel_arrays"] = tuple(
-            t.numpy() for t in _site_constants(site, torch.device("cpu")))
+            t.numpy() for t in site.kernel_constants("cpu"))
     return cached
 
 
@@ -253,8 +238,8 @@ def partial_features(state: SiteState) -> Tensor | None:
     pos, soc, left, t_c = arrays[0], arrays[1], arrays[2], arrays[6]
     out = np.empty((pos.shape[1], 3), dtype=np.float32)
     try:
-        _k.call("partial_features", pos, soc, left, t_c, out)
-    except Exception:  # noqa: BLE001 (SetupError, said once by kernel.call: fall back)
+        kernel_cache.call("partial_features", pos, soc, left, t_c, out)
+    except Exception:  # noqa: BLE001 (SetupError, said once by kernel_cache.call: fall back)
         _FEATURES["ok"] = False
         return None
     return torch.from_numpy(out)
@@ -319,9 +304,9 @@ def _advance_cpu(site: Site, state: SiteState, site_hash: Tensor, max_ticks: Ten
         with _pool_lock:
             numba.set_num_threads(threads)
             _pool["pid"] = os.getpid()
-            _k.call("advance_parallel", *args)
+            kernel_cache.call("advance_parallel", *args)
     else:
-        _k.call("advance_serial", *args)
+        kernel_cache.call("advance_serial", *args)
     i, f = [torch.from_numpy(r) for r in ints], [torch.from_numpy(r) for r in flags]
     return Events(ticks=i[0], trips=i[1], queue=i[2], arrived=f[0], failed=f[1], queued=f[2])
 
@@ -381,7 +366,7 @@ def _advance_device(site: Site, state: SiteState, site_hash: Tensor, max_ticks: 
     hsh = site_hash.to(dev, torch.int64).contiguous()
     rows, thr, tab = pol.arrays(dev)
     _check_lengths(b, max_ticks=limit, active=act, policy_rows=rows, site_hash=hsh)
-    tables, geo, energy = _site_constants(site, dev)
+    tables, geo, energy = site.kernel_constants(dev)
     ints = torch.empty(3, b, **kw)
     flags = torch.empty(3, b, dtype=torch.bool, device=dev)
     args = [*_state_tensors(state)[:5], hsh, limit, act, *_state_tensors(state)[5:], tables,

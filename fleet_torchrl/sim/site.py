@@ -178,6 +178,31 @@ class Site:
                                    dtype=torch.float32, device=self.device)
         self._start_nodes = torch.tensor([k for k in range(n) if k != C], **kw)
 
+    def kernel_constants(self, device: torch.device | str | None = None
+                         ) -> tuple[Tensor, Tensor, Tensor]:
+        """The tick rules' constants as the compiled kernel reads them (sim/fused.py), on
+        ``device`` (this site's by default), built once per device:
+
+        * ``tables`` ``[2, 2 * (n_nodes + 1)]`` int64: each node's successor, then the
+          occupancy bits a vehicle there checks before moving, indexed by
+          ``pos + (n_nodes + 1) * charge`` (row ``D`` of the charging half sends to ``C``);
+        * ``geo`` ``[3]`` int64: that stride ``n_nodes + 1``, the closed node's bit, and
+          whether the charger ends a session on a full battery;
+        * ``energy`` ``[3]`` float32: the soc change of an idle and of a moving tick, and
+          the failure line ``soc_low``."""
+        device = torch.device(device) if device is not None else self.device
+        key = ("_kernel_constants", device)
+        cached = self.__dict__.get(key)
+        if cached is None:
+            d_idle, d_move = float(self._delta[0]), float(self._delta[1])
+            geo = torch.tensor([self._stride, self._closed_bit, int(self.leave_when_full)],
+                               dtype=torch.int64)
+            energy = torch.tensor([d_idle, d_move, self.soc_low], dtype=torch.float32)
+            tables = torch.stack((self._succ, self._check))
+            cached = tuple(t.to(device).contiguous() for t in (tables, geo, energy))
+            self.__dict__[key] = cached
+        return cached
+
     # ------------------------------------------------------------------ random draws
     def closures(self, seed: int, site_idx: Tensor, ticks: Tensor,
                  params: SiteParams | None = None) -> Tensor:

@@ -337,7 +337,7 @@ def test_a_damaged_kernel_cache_is_found_by_its_hash_and_rebuilt(tmp_path, monke
     """The manifest records each cached kernel file's SHA-256; a file that no longer matches
     (a flipped byte that would still load) clears the cache with one warning line; files
     it does not list (a signature compiled since) are not judged."""
-    from fleet_torchrl.sim import kernel
+    from fleet_torchrl.sim import kernel_cache as kernel
 
     cleared = []
     monkeypatch.setattr(kernel, "cache_dir", lambda: tmp_path)

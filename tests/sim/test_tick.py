@@ -195,3 +195,20 @@ def test_batch_is_independent_sites(site, make_state):
         assert torch.equal(both.pos, torch.cat([a.pos, b.pos], 1))
         assert torch.allclose(both.soc, torch.cat([a.soc, b.soc], 1))
         assert ob_.queue.tolist() == [oa.queue.item(), ob.queue.item()]
+
+
+def test_the_kernel_reads_the_sites_tick_rules_through_one_public_method(site):
+    """``Site.kernel_constants``: the successor and occupancy-check tables, the geometry and
+    the energy the compiled kernel reads, built once per device from the site's own rules."""
+    from fleet_torchrl.sim import SiteConfig
+
+    tables, geo, energy = site.kernel_constants()
+    n = site.n_nodes
+    assert tables.shape == (2, 2 * (n + 1)) and tables.dtype == torch.int64
+    succ, check = tables
+    assert int(succ[D]) == BYPASS and int(succ[n + 1 + D]) == C  # pass or charge at D
+    assert int(check[C]) == (1 << M) | (1 << BYPASS)  # leaving C: merge priority to B
+    cfg = SiteConfig()
+    assert geo.tolist() == [n + 1, 1 << cfg.closed_node, int(cfg.leave_when_full)]
+    assert energy.tolist() == pytest.approx([-cfg.e_idle, -cfg.e_move, cfg.soc_low])
+    assert site.kernel_constants()[0] is tables  # built once
