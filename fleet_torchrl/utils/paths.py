@@ -182,6 +182,13 @@ LOCK = ".lock"
 _HELD: dict[Path, object] = {}  # the folders this process holds, by resolved path
 
 
+def _in_use(run_dir: str | os.PathLike, holder: str) -> SetupError:
+    """The one-line refusal of a folder another process holds (``holder``: what its lock
+    file says, e.g. ``process 1234``)."""
+    return SetupError(f"{os.fspath(run_dir)} is in use by {holder or 'another process'}: a run "
+                      "already trains there; stop it first, or give this run another folder")
+
+
 def hold_run_dir(run_dir: str | os.PathLike) -> None:
     """Hold ``run_dir`` for this process: an exclusive advisory lock on ``<run_dir>/.lock``
     that lasts until :func:`release_run_dir` or the end of the process, however it ends. A
@@ -202,10 +209,9 @@ def hold_run_dir(run_dir: str | os.PathLike) -> None:
         fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
         f.seek(0)
-        holder = f.read().strip() or "another process"
+        holder = f.read().strip()
         f.close()
-        raise SetupError(f"{os.fspath(run_dir)} is in use by {holder}: a run already trains "
-                         "there; stop it first, or give this run another folder") from None
+        raise _in_use(run_dir, holder) from None
     except OSError:  # no locks on this file system
         f.close()
         return
@@ -238,9 +244,7 @@ def check_not_held(run_dir: str | os.PathLike) -> None:
     try:
         fcntl.flock(f.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
     except BlockingIOError:
-        holder = f.read().strip() or "another process"
-        raise SetupError(f"{os.fspath(run_dir)} is in use by {holder}: a run already trains "
-                         "there; stop it first, or give this run another folder") from None
+        raise _in_use(run_dir, f.read().strip()) from None
     except OSError:  # no locks on this file system
         pass
     finally:
