@@ -110,9 +110,13 @@ def run(cfg: Config) -> dict:
             print(f"| {k} | {t[k]:.3f} | {t[k] / t['reference']:.3f} |")
         print(f"| fused: compile once | {t['compile']:.2f} | |")
     if a.training:
-        recipes = {n: [*r.overrides, *saved_teacher_bases(cfg, n)]
-                   for n, r in cfg.recipes.items()}
-        result["training"] = tr = bench_training(recipes, device=a.device)
+        from .config import compose_config
+        from .training.spec import RunSpec
+
+        specs = {n: RunSpec.of(compose_config([
+            *r.overrides, *saved_teacher_bases(cfg, n), f"train.device={a.device}",
+            "train.progress=false", "train.tensorboard=false"])) for n, r in cfg.recipes.items()}
+        result["training"] = tr = bench_training(specs)
         print("\n| learner (defaults) | sites | decisions/s | s per round |\n|---|---:|---:|---:|")
         for name, r in tr.items():
             print(f"| {name} | {r['sites']} | {r['decisions_per_s']:.0f} | {r['round_s']:.2f} |")

@@ -42,7 +42,8 @@ def task(dcfg: DictConfig) -> None:
         preflight(cfg, None)
         o = cfg.objective
         scores = {name: mdp_score(p, cfg.site, cfg.mdp, o.n_sites, o.seed, cfg.eval.device)
-                  for name, p in candidate_policies(cfg).items()}
+                  for name, p in candidate_policies(cfg.table, cfg.recipes,
+                                                    cfg.eval.device).items()}
         key = criterion(cfg.mdp)
         text = score_table(scores, key)
         print(text)

@@ -26,10 +26,11 @@ def preflight(cfg: Config, run_dir: str | None) -> None:
 
 def task(dcfg: DictConfig) -> None:
     """Draw the action map of every policy of ``maps.policies``."""
+    from .config import compose_config
     from .experiments.policy_maps import run
 
     with user_errors():
-        run(validated(dcfg))
+        run(validated(dcfg), compose_config(["agent=planner"]).agent)
 
 
 main = hydra_command(task)

@@ -8,7 +8,7 @@
 ``fleet-table ARGS`` is ``fleet-train hydra/sweeper=table hydra.mode=MULTIRUN
 hydra.sweep.dir='${table.runs_dir}' ARGS`` (:data:`TABLE`): a Hydra multirun of the ``train``
 task whose sweeper (``conf/hydra/sweeper/table.yaml``,
-:class:`~fleet_torchrl.experiments.launch.TableSweep`) decides which trainings are needed,
+:class:`~fleet_torchrl.table_sweep.TableSweep`) decides which trainings are needed,
 launches them with the configured launcher and then evaluates; what it trains, evaluates and
 writes is :mod:`fleet_torchrl.experiments.table`.
 """
