@@ -146,14 +146,14 @@ def bench_training(recipes: dict[str, list[str]], rounds: int = 4, device: str =
     the round's bookkeeping; evaluation, checkpoints and TensorBoard left out), after one
     warm-up round."""
     from ..config import compose_config
-    from ..training import Trainer
+    from ..training import RunSpec, Trainer
 
     out = {}
     with tempfile.TemporaryDirectory() as d:
         for name, overrides in recipes.items():
             cfg = compose_config([*overrides, f"train.device={device}", "train.progress=false",
                                   "train.tensorboard=false", f"train.out_dir={d}/{name}"])
-            trainer = Trainer(cfg, f"{d}/{name}_run")
+            trainer = Trainer(RunSpec.of(cfg), f"{d}/{name}_run")
             trainer.play_round()  # warm-up (buffers fill, kernel loaded)
             t0 = time.perf_counter()
             frames = sum(trainer.play_round()["frames"] for _ in range(rounds))

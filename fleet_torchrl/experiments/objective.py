@@ -81,7 +81,7 @@ def candidate_policies(cfg: Config) -> dict[str, Policy]:
     root = cfg.table.policies_dir
     saved = [name for name in cfg.recipes
              if saved_policy_path(root, name, cfg.table.follow_symlinks).is_file()]
-    return {**pols, **load_policies(cfg, saved)}
+    return {**pols, **load_policies(root, saved, cfg.eval.device, cfg.table.follow_symlinks)}
 
 
 def criterion(mdp_cfg: MDPConfig) -> str:

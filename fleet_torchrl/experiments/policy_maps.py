@@ -100,7 +100,8 @@ def planner_maps(cfg: Config) -> list[Path]:
 def run(cfg: Config) -> list[Path]:
     out = Path(cfg.maps.out)
     paths = []
-    for name, pol in load_policies(cfg, cfg.maps.policies).items():
+    for name, pol in load_policies(cfg.table.policies_dir, cfg.maps.policies, cfg.eval.device,
+                                   cfg.table.follow_symlinks).items():
         pol = pol.cpu()
         if pol.encoding in MAP_ENCODINGS:
             fig = plot_policy_map(pol, title=f"{name}: charge (orange) / pass, by TC")

@@ -79,8 +79,8 @@ from ..config import Config, compose_config
 from ..evaluation import evaluate_policy, evaluate_with, gain_over, seed_interval
 from ..evaluation.cache import EvalCache, policy_fingerprint, site_identity
 from ..sim import SiteConfig
-from ..store import inside_policies, load_policies, saved_policy_path
-from ..training import Trainer, result_fingerprint
+from ..store import inside, load_policies, saved_policy_path
+from ..training import RunSpec, Trainer, result_fingerprint
 from ..training.checkpoint import without_neutral
 from ..utils.checks import ConfigError
 from ..utils.runinfo import file_sha256, read_json, run_info, to_jsonable, write_json
@@ -209,12 +209,13 @@ def point_training(cfg: Config, run_cfg: Config, label: str) -> tuple[Policy, di
     teacher = policy_file_sha256(getattr(getattr(run_cfg.agent, "expert", None), "base", None))
     if teacher is not None:  # a teacher over a saved policy: its content, not just its path
         start = [start, teacher]
-    out = Path(cfg.sweep.search_dir) / label / digest([result_fingerprint(run_cfg), start])
+    out = Path(cfg.sweep.search_dir) / label / digest(
+        [result_fingerprint(RunSpec.of(run_cfg)), start])
     run_cfg.train.out_dir = str(out)
     run_cfg.train.overwrite = True  # the sweep's own folder: a policy there is a killed run's
     if not reusable(out, run_cfg):
         print(f"[sweep] {label}: training -> {out}", flush=True)
-        Trainer(run_cfg, out / "run").run()
+        Trainer(RunSpec.of(run_cfg), out / "run").run()
     else:
         print(f"[sweep] {label}: reusing {out}", flush=True)
     return load_policy_file(out), read_json(out / "train_summary.json")
@@ -249,8 +250,8 @@ def point_key(cfg: Config, site: SiteConfig, search_cfgs: dict[str, Config],
         "policies": [policy_identity(cfg, n) for n in s.policies]
         + [str(p) + ":" + file_sha256(p)[:16] for n in s.policies
            for p in seed_paths(cfg, n).values()],
-        "searches": {k: result_fingerprint(v) for k, v in search_cfgs.items()},
-        "specialists": {row: {seed: result_fingerprint(c) for seed, c in runs.items()}
+        "searches": {k: result_fingerprint(RunSpec.of(v)) for k, v in search_cfgs.items()},
+        "specialists": {row: {seed: result_fingerprint(RunSpec.of(c)) for seed, c in runs.items()}
                         for row, runs in specialist_cfgs.items()},
         "guard": s.guard, "seeds": "every seed of the learned policies",
         "search_seeded": s.search_seeded, "pick": [s.pick_sims, s.pick_ticks],
@@ -357,8 +358,10 @@ def seed_paths(cfg: Config, name: str) -> dict[int, Path]:
     if spec is not None and not spec.trainable:
         return {}
     folder = Path(cfg.table.policies_dir) / name
-    seeds = {int(p.parent.name[4:]): inside_policies(cfg, p)
-             for p in inside_policies(cfg, folder).glob(f"seed*/{POLICY_FILE}")
+    t = cfg.table
+    seeds = {int(p.parent.name[4:]): inside(t.policies_dir, p, t.follow_symlinks)
+             for p in inside(t.policies_dir, folder, t.follow_symlinks).glob(
+                 f"seed*/{POLICY_FILE}")
              if p.parent.name[4:].isdigit()}
     if not seeds:
         seeds = {0: saved_policy_path(cfg.table.policies_dir, name, cfg.table.follow_symlinks)}
@@ -420,7 +423,8 @@ def run_point(cfg: Config) -> list[dict[str, Any]] | None:
     # every row as {seed: policy}; a baseline, a search or a planner has one (seed None)
     groups: dict[str, dict[int | None, Policy]] = {}
     baselines = [n for n in cfg.sweep.policies if not seed_paths(cfg, n)]
-    for name, pol in load_policies(cfg, baselines).items():
+    for name, pol in load_policies(cfg.table.policies_dir, baselines, cfg.eval.device,
+                                       cfg.table.follow_symlinks).items():
         groups[name] = {None: pol}
     for name in cfg.sweep.policies:
         if name not in groups:

@@ -36,7 +36,7 @@ from ..config import Config, compose_config
 from ..evaluation import evaluate_with, gain_over, save_result, seed_interval
 from ..sim import SiteConfig
 from ..store import load_policies, seed_dir, site_preset, site_suffix
-from ..training import CHECKPOINT, checkpoint_mismatch, result_fingerprint
+from ..training import CHECKPOINT, RunSpec, checkpoint_mismatch, result_fingerprint
 from ..training.publish import holds_policy
 from ..utils.checks import ConfigError
 from ..utils.plotting import plot_gain_boxplot, plot_learning_curves, save_figure
@@ -170,7 +170,7 @@ def reusable(out_dir: Path, run_cfg: Config) -> bool:
         return False
     # the summary must belong to this configuration and to this very policy file (a killed
     # or concurrent run can leave a policy beside another run's summary)
-    return (rec.get("fingerprint") == result_fingerprint(run_cfg)
+    return (rec.get("fingerprint") == result_fingerprint(RunSpec.of(run_cfg))
             and rec.get("policy_sha256") == file_sha256(out_dir / POLICY_FILE))
 
 
@@ -210,7 +210,7 @@ def plan_training(name: str, seed: int, cfg: Config, progress: bool = False
     resume = (run_dir / CHECKPOINT).exists() and not cfg.table.retrain
     if resume:
         try:
-            diff = checkpoint_mismatch(run_dir / CHECKPOINT, run_cfg)
+            diff = checkpoint_mismatch(run_dir / CHECKPOINT, RunSpec.of(run_cfg))
             why = f"a run of another configuration ({'; '.join(diff[:3])})" if diff else None
         except ValueError as e:
             why = f"an unreadable checkpoint ({e})"
@@ -372,7 +372,8 @@ def evaluate_table(cfg: Config, times: dict[tuple[str, int], float | None]
               f"{res['failure_rate']:.3f} ({res['wall_time_s']:.1f} s)", flush=True)
         return res
 
-    baselines = load_policies(cfg, list(BASELINES))
+    baselines = load_policies(cfg.table.policies_dir, list(BASELINES), cfg.eval.device,
+                              cfg.table.follow_symlinks)
     base = {name: evaluate(pol, name) for name, pol in baselines.items()}
     rule, heur = base["rule"], base["heuristic"]
     planner = compose_config(["agent=planner"]).agent

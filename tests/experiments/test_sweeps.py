@@ -64,7 +64,7 @@ def test_search_starts_from_the_points_best_partial_policy(saved_policies):
     run_cfg = search_config(cfg, site, cfg.sweep.searches["search_table"])
     assert run_cfg.train.eval_sims == 8 and run_cfg.site.p_c == 0.8
     assert run_cfg.agent.tc_bins == 4
-    pols = load_policies(cfg, ["rule", "heuristic", "dqn_partial"])
+    pols = load_policies(cfg.table.policies_dir, ["rule", "heuristic", "dqn_partial"], "cpu")
     assert search_start(cfg, run_cfg, pols) == "heuristic"
     # a saved policy that acts as the heuristic beats the rule: it is named by its file
     from fleet_torchrl.agents import HeuristicPolicy, save_policy
@@ -73,17 +73,18 @@ def test_search_starts_from_the_points_best_partial_policy(saved_policies):
     good = SearchPolicy("table")
     good.charge.copy_(HeuristicPolicy()(cell_centres()))
     save_policy(saved_policies / "good" / "policy.pt", good, "search")
-    pols = load_policies(cfg, ["rule", "good"])
+    pols = load_policies(cfg.table.policies_dir, ["rule", "good"], "cpu")
     assert search_start(cfg, run_cfg, pols) == str(saved_policies / "good" / "policy.pt")
     # the threshold class starts from the rule's or the heuristic's thresholds
     thr_cfg = search_config(cfg, site, cfg.sweep.searches["search_threshold"])
-    pols = load_policies(cfg, ["rule", "heuristic", "dqn_partial"])
+    pols = load_policies(cfg.table.policies_dir, ["rule", "heuristic", "dqn_partial"], "cpu")
     assert search_start(cfg, thr_cfg, pols) in ("heuristic",
                                                  str(saved_policies / "dqn_partial" /
                                                      "policy.pt"))
     # a point's earlier search (not under table.policies_dir) starts the next from its file
     # (it failed T_C 40 and 50 when it was looked up as a saved policy)
-    pols = {"rule": load_policies(cfg, ["rule"])["rule"], "search_threshold": good}
+    pols = {"rule": load_policies(cfg.table.policies_dir, ["rule"], "cpu")["rule"],
+            "search_threshold": good}
     trained = {"search_threshold": saved_policies / "good" / "policy.pt"}
     assert search_start(cfg, run_cfg, pols, trained) == str(trained["search_threshold"])
 
