@@ -30,6 +30,11 @@ if TYPE_CHECKING:
     from .experiments.config import BenchConfig
 
 
+# the groups the benchmark reads (the recipes it times, the table's policies their teachers
+# plan over)
+GROUPS = ("table", "recipes", "bench")
+
+
 def run(cfg: Config) -> dict:
     """Every measurement of ``cfg.bench``; prints Markdown tables, returns the figures."""
     import platform
@@ -170,7 +175,7 @@ def preflight(cfg: Config, run_dir: str | None) -> None:
 def task(dcfg: DictConfig) -> None:
     """Measure and print (``bench.out``: also as JSON)."""
     with user_errors():
-        cfg = validated(dcfg)
+        cfg = validated(dcfg, GROUPS)
         preflight(cfg, None)
         run(cfg)
 

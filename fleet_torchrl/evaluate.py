@@ -36,6 +36,10 @@ if TYPE_CHECKING:
 log = logging.getLogger("fleet_torchrl.evaluate")  # to stdout and the Hydra job's log file
 
 
+# the groups an evaluation reads (train.out_dir, table.policies_dir: where a policy is found)
+GROUPS = ("site", "state", "mdp", "agent", "train", "eval", "table")
+
+
 def preflight(cfg: Config, run_dir: str | Path | None) -> None:
     """Before the run folder exists: the result path (and its CSV beside it) can be
     written and holds nothing it would replace unasked (``eval.overwrite``), and a saved
@@ -89,7 +93,7 @@ def task(dcfg: DictConfig) -> None:
     from hydra.core.hydra_config import HydraConfig
 
     with user_errors():
-        cfg = validated(dcfg)
+        cfg = validated(dcfg, GROUPS)
         out = cfg.eval.out or Path(HydraConfig.get().runtime.output_dir) / "eval.json"
         run(cfg, out)
 

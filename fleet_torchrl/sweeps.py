@@ -21,6 +21,11 @@ if TYPE_CHECKING:
     from .config import Config
 
 
+# the groups a sweep point reads
+GROUPS = ("site", "state", "mdp", "agent", "network", "train", "eval", "table", "recipes",
+          "sweep")
+
+
 def preflight(cfg: Config, run_dir: str | None) -> None:
     """Before any point is launched: a sweep of one site (not a distribution) whose outputs
     can be written and whose folder is its own."""
@@ -47,7 +52,7 @@ def task(dcfg: DictConfig) -> Any:
     from .utils.runinfo import write_text
 
     with user_errors():
-        cfg = validated(dcfg)
+        cfg = validated(dcfg, GROUPS)
     try:
         run_point(cfg)
     except Exception as e:  # keep the other points of the multirun going

@@ -43,6 +43,10 @@ if TYPE_CHECKING:
 log = logging.getLogger("fleet_torchrl.train")  # Hydra writes it to stdout and <run dir>/train.log
 
 
+# the groups a training reads (table: policies_dir, follow_symlinks: where it publishes)
+GROUPS = ("site", "state", "mdp", "agent", "network", "train", "table")
+
+
 def preflight(cfg: Config, run_dir: str | Path | None) -> None:
     """What is checked before Hydra writes the run folder (:class:`~fleet_torchrl.cli.
     ValidateFirst`) and again before a job trains: the agent is a learner, the folder its
@@ -144,7 +148,7 @@ def task(dcfg: DictConfig) -> float:
     from hydra.core.hydra_config import HydraConfig
 
     with user_errors():
-        cfg = validated(dcfg)
+        cfg = validated(dcfg, GROUPS)
         summary = train(cfg, HydraConfig.get().runtime.output_dir)
     return (summary["best"] or {}).get("trips", float("nan"))
 
