@@ -17,6 +17,10 @@ if TYPE_CHECKING:
     from .config import Config
 
 
+# the groups the maps read
+GROUPS = ("site", "eval", "table", "recipes", "maps")
+
+
 def preflight(cfg: Config, run_dir: str | None) -> None:
     """Before the run folder exists: ``maps.out`` can hold the maps."""
     from .utils.paths import check_output
@@ -30,7 +34,7 @@ def task(dcfg: DictConfig) -> None:
     from .experiments.policy_maps import run
 
     with user_errors():
-        run(validated(dcfg), compose_config(["agent=planner"]).agent)
+        run(validated(dcfg, GROUPS), compose_config(["agent=planner"]).agent)
 
 
 main = hydra_command(task)

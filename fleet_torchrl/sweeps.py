@@ -24,6 +24,11 @@ if TYPE_CHECKING:
     from .training.spec import RunSpec
 
 
+# the groups a sweep point reads
+GROUPS = ("site", "state", "mdp", "agent", "network", "train", "eval", "table", "recipes",
+          "sweep")
+
+
 def preflight(cfg: Config, run_dir: str | None) -> None:
     """Before any point is launched: a sweep of one site (not a distribution) whose outputs
     can be written and whose folder is its own."""
@@ -47,6 +52,8 @@ def specialist_spec(cfg: Config, site: Any, recipe: str, seed: int,
                     extra: tuple[str, ...] = ()) -> RunSpec:
     """The training of a specialist: a recipe of ``recipes`` (then ``extra`` overrides) on
     the point's own site (a recipe of a site distribution cannot be a specialist)."""
+    from dataclasses import replace
+
     from .config import compose_config
     from .training.spec import RunSpec
     from .utils.checks import ConfigError
@@ -56,8 +63,6 @@ def specialist_spec(cfg: Config, site: Any, recipe: str, seed: int,
     if spec.site.randomized:
         raise ConfigError(f"sweep.specialists: the recipe {recipe!r} trains on a site "
                           "distribution; a specialist trains on the point's own site")
-    from dataclasses import replace
-
     return replace(spec, site=site)
 
 
@@ -122,7 +127,7 @@ def task(dcfg: DictConfig) -> Any:
     from .utils.runinfo import write_text
 
     with user_errors():
-        cfg = validated(dcfg)
+        cfg = validated(dcfg, GROUPS)
     try:
         run_point(point_settings(cfg))
     except Exception as e:  # keep the other points of the multirun going

@@ -54,9 +54,9 @@ def test_search_starts_from_the_points_best_partial_policy(saved_policies):
     """The point's search starts from the best partial-state policy there, judged on the
     search's own selection set: the heuristic beats the rule and an untrained network on the
     default site; a saved policy is named by its file."""
-    from fleet_torchrl import store
     from fleet_torchrl.config import compose_config
     from fleet_torchrl.experiments.sweeps import search_start
+    from fleet_torchrl.store import load_policies
     from fleet_torchrl.sweeps import point_settings
 
     cfg = compose_config([f"table.policies_dir={saved_policies}", TINY_SEARCH, *TINY_PICK,
@@ -66,10 +66,7 @@ def test_search_starts_from_the_points_best_partial_policy(saved_policies):
     assert run_cfg.train.eval_sims == 8 and run_cfg.site.p_c == 0.8
     assert run_cfg.agent.tc_bins == 4
 
-    def load_policies(cfg, names):
-        return store.load_policies(saved_policies, names, "cpu")
-
-    pols = load_policies(cfg, ["rule", "heuristic", "dqn_partial"])
+    pols = load_policies(cfg.table.policies_dir, ["rule", "heuristic", "dqn_partial"], "cpu")
     assert search_start(p, run_cfg, pols) == "heuristic"
     # a saved policy that acts as the heuristic beats the rule: it is named by its file
     from fleet_torchrl.agents import HeuristicPolicy, save_policy
@@ -78,17 +75,18 @@ def test_search_starts_from_the_points_best_partial_policy(saved_policies):
     good = SearchPolicy("table")
     good.charge.copy_(HeuristicPolicy()(cell_centres()))
     save_policy(saved_policies / "good" / "policy.pt", good, "search")
-    pols = load_policies(cfg, ["rule", "good"])
+    pols = load_policies(cfg.table.policies_dir, ["rule", "good"], "cpu")
     assert search_start(p, run_cfg, pols) == str(saved_policies / "good" / "policy.pt")
     # the threshold class starts from the rule's or the heuristic's thresholds
     thr_cfg = p.searches["search_threshold"]
-    pols = load_policies(cfg, ["rule", "heuristic", "dqn_partial"])
+    pols = load_policies(cfg.table.policies_dir, ["rule", "heuristic", "dqn_partial"], "cpu")
     assert search_start(p, thr_cfg, pols) in ("heuristic",
                                                  str(saved_policies / "dqn_partial" /
                                                      "policy.pt"))
     # a point's earlier search (not under table.policies_dir) starts the next from its file
     # (it failed T_C 40 and 50 when it was looked up as a saved policy)
-    pols = {"rule": load_policies(cfg, ["rule"])["rule"], "search_threshold": good}
+    pols = {"rule": load_policies(cfg.table.policies_dir, ["rule"], "cpu")["rule"],
+            "search_threshold": good}
     trained = {"search_threshold": saved_policies / "good" / "policy.pt"}
     assert search_start(p, run_cfg, pols, trained) == str(trained["search_threshold"])
 
@@ -165,6 +163,8 @@ def test_the_distilled_rows_teacher_and_state(tmp_path):
     bases = {"heuristic": "planner", "search_threshold": "planner_search"}
     files = {("search_threshold", None): tmp_path / "t.pt", ("dqn_all", 0): tmp_path / "a.pt",
              ("dqn_all", 1): tmp_path / "b.pt"}
+    for f in files.values():  # a teacher's base is a policy file that exists
+        f.touch()
     assert distil_base(keys, bases) == ("search_threshold", None)
     assert distil_teacher(planner, ("search_threshold", None), files).base == \
         str(tmp_path / "t.pt")
