@@ -1508,3 +1508,21 @@ def test_a_refused_state_changes_nothing():
     with pytest.raises(ValueError, match=r"site\.soc"):
         env.load_state_dict(bad)
     assert all(torch.equal(v, before[k]) for k, v in env.state_dict().items())
+
+
+# ---- typed run specs: each command checks the groups it reads
+
+
+def test_a_bad_setting_of_a_group_a_command_does_not_read_is_ignored(workdir, command):
+    """evaluate reads no sweep, maps or bench: bad values there neither stop it nor change
+    its result; sweeps, which reads them, refuses the same value in one line."""
+    from fleet_torchrl import evaluate, sweeps
+
+    out = workdir / "rule.json"
+    assert command(evaluate.main, "sweep.param=bogus", "bench.batches=[0]", "maps.out=afile",
+                   "eval.n_sims=2", "eval.ticks=50", "eval.progress=false",
+                   f"eval.out={out}", f"hydra.run.dir={workdir / 'run'}") == 0
+    assert json.loads(out.read_text())["n_sims"] == 2
+    before = snapshot(workdir)
+    assert command(sweeps.main, "sweep.param=bogus", f"hydra.run.dir={workdir / 'run2'}") == 2
+    assert snapshot(workdir) == before
