@@ -29,11 +29,19 @@ from __future__ import annotations
 import os
 import re
 import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
-from .config import Config, mark_multirun, one_line, register_configs, to_config, without_hydra
+from .config import (
+    GROUPS,
+    Config,
+    mark_multirun,
+    one_line,
+    register_configs,
+    to_config,
+    without_hydra,
+)
 
 # launcher options (hydra/launcher=...) and the extra of pyproject.toml that provides them
 LAUNCHER_EXTRAS = {"ray": "ray", "ray_aws": "ray", "ray_cluster": "ray",
@@ -209,10 +217,36 @@ def one_line_errors() -> Iterator[None]:
 _VALIDATED: list[Config] = []
 
 
-def validated(dcfg: Any) -> Config:
+def validated(dcfg: Any, groups: Iterable[str] = GROUPS) -> Config:
     """The task's typed config: the one :class:`ValidateFirst` checked before the run
-    started (a single run), else validated now (a job of a multirun)."""
-    return _VALIDATED.pop() if _VALIDATED else to_config(dcfg)
+    started (a single run), else validated now (a job of a multirun) for ``groups``, the
+    groups the command reads (its module's ``GROUPS``)."""
+    return _VALIDATED.pop() if _VALIDATED else to_config(dcfg, groups)
+
+
+def command_groups(job_name: str) -> tuple[str, ...]:
+    """The groups the command ``job_name`` reads: ``GROUPS`` of its module (every group of
+    the root config for a command that declares none)."""
+    import importlib
+
+    try:
+        module = importlib.import_module(f"{__package__}.{job_name}")
+    except ImportError:  # an app of another package (a test's)
+        return GROUPS
+    return tuple(getattr(module, "GROUPS", GROUPS))
+
+
+def groups_help(app_name: str) -> str:
+    """``${fleet_groups:...}`` of the help template: the groups the command of a console
+    script (``fleet-train``) reads; the others compose, but it neither reads nor checks
+    them."""
+    job = str(app_name).removeprefix("fleet-").replace("-", "_")
+    read = command_groups(job)
+    if tuple(read) == GROUPS:
+        return ""
+    return (f"\n== Groups {app_name} reads ==\n{', '.join(read)}, seed\n(it ignores the "
+            "settings of the others; every command checks the run settings: site, state, "
+            "mdp, agent, network, train)\n")
 
 
 def _callback_base() -> type:
@@ -300,16 +334,17 @@ def _check_job(config: Any, dir_key: str, subdir_key: str | None = None,
 
     prefix = f"{label}: " if label else ""
     handed: Config | None = None
+    groups = command_groups(str(config.hydra.job.name))
     try:
         try:  # as the task will get it (unless it refers to where the job runs)
-            handed = to_config(without_hydra(config))
+            handed = to_config(without_hydra(config), groups)
         except OmegaConfBaseException:
             handed = None
         job_cfg = copy.deepcopy(config)
         with _JobConfig(job_cfg, dir_key, subdir_key) as job:
             if job.run_dir is not None:  # Hydra makes it, .hydra/ written or not
                 check_output(f"hydra.{dir_key.split('.', 1)[1]}", job.run_dir, "dir")
-            cfg = handed if handed is not None else to_config(without_hydra(job_cfg))
+            cfg = handed if handed is not None else to_config(without_hydra(job_cfg), groups)
             if run_preflight:
                 preflight(str(job_cfg.hydra.job.name), cfg, job.run_dir)
             paths = command_hook(str(job_cfg.hydra.job.name), "output_paths")
@@ -440,12 +475,15 @@ def hydra_command(task: Callable[[Any], Any], config_name: str = "config",
     Hydra's tab completion offers every group of ``config_path``: a command that takes none
     of the model's groups has a folder of its own (``tool_conf``)."""
     import hydra
+    from omegaconf import OmegaConf
 
     app = hydra.main(version_base="1.3", config_path=config_path,
                      config_name=config_name)(task)
 
     def main() -> Any:
         register_configs()
+        if not OmegaConf.has_resolver("fleet_groups"):
+            OmegaConf.register_new_resolver("fleet_groups", groups_help)
         mark_multirun(sys.argv[1:])
         check_environment()
         with one_line_errors():

@@ -17,7 +17,7 @@ composing a config is what ``--help`` and every tab completion do.
 from __future__ import annotations
 
 import os
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field, fields, is_dataclass
 from pathlib import Path
@@ -172,8 +172,37 @@ def register_configs() -> None:
             cs.store(name=f"schema_{name}", node=schema)
 
 
-def validate(cfg: Config) -> Config:
-    """Check every range; raise :class:`ConfigError` naming the first bad field."""
+# the groups of the root config; a run spec's (fleet_torchrl.training.spec) are always read
+GROUPS = ("site", "state", "mdp", "agent", "network", "train", "eval", "table", "recipes",
+          "sweep", "maps", "objective", "bench")
+SPEC_GROUPS = ("site", "state", "mdp", "agent", "network", "train")
+
+
+def validate(cfg: Config, groups: Iterable[str] = GROUPS) -> Config:
+    """Check the ranges of the run spec's groups and of ``groups`` (the groups a command
+    reads: its ``GROUPS``; default all) and the cross-checks among them; raise
+    :class:`ConfigError` naming the first bad field. A group no command of ``groups`` reads
+    is composed, but neither checked nor read."""
+    groups = frozenset(groups)
+    unknown = groups - set(GROUPS)
+    if unknown:
+        raise ValueError(f"groups={sorted(unknown)} is invalid: allowed {', '.join(GROUPS)}")
+    spec = validate_spec(cfg)
+    if "eval" in groups:
+        cfg.eval.validate()
+    if groups & {"recipes", "table", "sweep", "maps", "bench"}:
+        validate_experiments(cfg, groups)
+    if "objective" in groups:
+        cfg.objective.validate()
+    if "bench" in groups:
+        cfg.bench.validate()
+    check_memory_needs(cfg, spec.trainable and "train" in groups, groups)
+    return cfg
+
+
+def validate_spec(cfg: Config) -> Any:
+    """The checks of the run spec's groups (site, state, mdp, agent, network, train) and the
+    seed, what every command reads; returns the agent's registry entry."""
     from .agents.registry import AGENTS, get_agent  # the builders: torch, TorchRL
 
     check_name("site.name", cfg.site.name)  # a part of run folders and policy names
@@ -203,12 +232,29 @@ def validate(cfg: Config) -> Config:
                               f"{cfg.state.name}: allowed none (the heuristic reads the partial "
                               "state's features: state=partial, partial_site or "
                               "partial_all_site)")
-    cfg.eval.validate()
     check_range("seed", cfg.seed, 0, 2**32 - 1)
+    return spec
+
+
+def validate_experiments(cfg: Config, groups: frozenset[str]) -> None:
+    """The recipes, and the groups of ``groups`` that name them or baselines: the table's,
+    a sweep's (and its point's site), the maps'."""
+    from .agents.registry import AGENTS
+
     baselines = tuple(n for n, s in AGENTS.items() if not s.trainable)
     validate_recipes(cfg.recipes, baselines)
     known = (*baselines, *cfg.recipes)
-    cfg.table.validate(tuple(cfg.recipes))
+    if "table" in groups:
+        cfg.table.validate(tuple(cfg.recipes))
+    if "sweep" in groups:
+        validate_sweep(cfg, known)
+    if "maps" in groups:
+        cfg.maps.validate(known)
+
+
+def validate_sweep(cfg: Config, known: tuple[str, ...]) -> None:
+    """A sweep's settings: its value against the point's site, its rows among ``known``
+    policies, its specialists and distilled planner among the recipes."""
     if cfg.sweep.param == "n_vehicles":  # the point's site must hold its vehicles
         check_sweep_value("n_vehicles", cfg.sweep.value, cfg.site.n_nodes - 2)
     cfg.sweep.validate(known)
@@ -221,11 +267,6 @@ def validate(cfg: Config) -> Config:
             raise ConfigError(f"sweep.distil={cfg.sweep.distil!r} is invalid: allowed a "
                               "recipe of agent=imitation (the planner distilled), or null")
         check_point_recipe("sweep.distil", cfg.sweep.distil, cfg.recipes[cfg.sweep.distil])
-    cfg.maps.validate(known)
-    cfg.objective.validate()
-    cfg.bench.validate()
-    check_memory_needs(cfg, spec.trainable)
-    return cfg
 
 
 def check_point_recipe(path: str, name: str, recipe: Recipe) -> None:
@@ -242,11 +283,13 @@ def check_point_recipe(path: str, name: str, recipe: Recipe) -> None:
                           "overrides (not a generalist's)")
 
 
-def check_memory_needs(cfg: Config, trainable: bool) -> None:
+def check_memory_needs(cfg: Config, trainable: bool,
+                       groups: Iterable[str] = GROUPS) -> None:
     """Refuse, before anything is allocated, a setting whose allocation would not fit in
     this machine's memory (:mod:`fleet_torchrl.utils.resources`): a training's sites,
     network, replay buffer or search population (the agent's own estimate,
-    ``AgentConfig.memory``), an evaluation's simulations (a planner's futures included)."""
+    ``AgentConfig.memory``; ``trainable``), an evaluation's simulations (a planner's futures
+    included; ``eval`` in ``groups``), a benchmark's batches (``bench`` in ``groups``)."""
     from .env.encodings import get_encoding
     from .evaluation.config import eval_bytes
     from .sim import Site
@@ -257,20 +300,23 @@ def check_memory_needs(cfg: Config, trainable: bool) -> None:
     per = cfg.agent.sites_per_simulation()
     sims = "the evaluation's simulations" + (f" ({per} sites in flight each, the planner's "
                                              "futures)" if per > 1 else "")
-    needs = [("eval.n_sims", cfg.eval.n_sims, eval_bytes(sb, cfg.eval.n_sims, per), sims)]
+    needs = [("eval.n_sims", cfg.eval.n_sims, eval_bytes(sb, cfg.eval.n_sims, per), sims)] \
+        if "eval" in groups else []
     if trainable:
         n_obs = get_encoding(cfg.state.name).size(Site(cfg.site))
         needs += cfg.agent.memory(cfg.network, n_obs, sb)
         needs.append(("train.eval_sims", cfg.train.eval_sims,
                       eval_bytes(sb, cfg.train.eval_sims), "the periodic evaluation"))
-    for i, b in enumerate(cfg.bench.batches):
+    for i, b in enumerate(cfg.bench.batches if "bench" in groups else ()):
         needs.append((f"bench.batches[{i}]", b, 3 * b * sb, "a benchmark batch of sites"))
     for setting, value, nbytes, what in needs:
         check_memory(setting, value, nbytes, what)
 
 
-def compose_config(overrides: list[str] | tuple[str, ...] = ()) -> Config:
-    """The validated config that ``conf/config.yaml`` plus ``overrides`` composes to.
+def compose_config(overrides: list[str] | tuple[str, ...] = (),
+                   groups: Iterable[str] = GROUPS) -> Config:
+    """The config that ``conf/config.yaml`` plus ``overrides`` composes to, validated for
+    ``groups`` (:func:`validate`; default all).
 
     Works inside a running Hydra app (which has already initialised Hydra) and outside one.
     """
@@ -279,9 +325,9 @@ def compose_config(overrides: list[str] | tuple[str, ...] = ()) -> Config:
 
     register_configs()
     if GlobalHydra.instance().is_initialized():
-        return to_config(compose(config_name="config", overrides=list(overrides)))
+        return to_config(compose(config_name="config", overrides=list(overrides)), groups)
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        return to_config(compose(config_name="config", overrides=list(overrides)))
+        return to_config(compose(config_name="config", overrides=list(overrides)), groups)
 
 
 def unknown_keys(node: Any, path: str = "") -> list[str]:
@@ -332,9 +378,10 @@ def unresolvable_as_config_errors() -> Iterator[None]:
                           ) from None
 
 
-def to_config(cfg: DictConfig | Config) -> Config:
-    """Turn a composed Hydra config into validated dataclasses; a key the schema does not
-    have (e.g. ``+site.pc=0.5``, a misspelt ``site.p_c``) is rejected, naming it."""
+def to_config(cfg: DictConfig | Config, groups: Iterable[str] = GROUPS) -> Config:
+    """Turn a composed Hydra config into dataclasses validated for ``groups``
+    (:func:`validate`); a key the schema does not have (e.g. ``+site.pc=0.5``, a misspelt
+    ``site.p_c``) is rejected, naming it."""
     if isinstance(cfg, DictConfig):
         bad = unknown_keys(cfg)
         if bad:
@@ -343,7 +390,7 @@ def to_config(cfg: DictConfig | Config) -> Config:
         obj = OmegaConf.to_object(cfg) if isinstance(cfg, DictConfig) else cfg  # per field
     if not isinstance(obj, Config):  # composed without the schema (e.g. plain YAML in a test)
         raise ConfigError("config was not composed from the 'schema_config' schema")
-    return validate(obj)
+    return validate(obj, groups)
 
 
 def without_hydra(cfg: DictConfig) -> DictConfig:
@@ -397,5 +444,5 @@ def one_line(exc: BaseException) -> str:
     return msg or type(exc).__name__
 
 
-__all__ = ["CONF_DIR", "TOOL_SCHEMAS", "Config", "ConfigError", "compose_config",
+__all__ = ["CONF_DIR", "GROUPS", "TOOL_SCHEMAS", "Config", "ConfigError", "compose_config",
            "register_configs", "to_config", "to_tool_config", "validate"]

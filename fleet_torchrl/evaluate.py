@@ -24,14 +24,20 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from .cli import hydra_command, validated
+from .training.spec import RunSpec
 from .utils.cli import user_errors
 
 if TYPE_CHECKING:
     from omegaconf import DictConfig
 
+    from .agents.base import Policy
     from .config import Config
 
 log = logging.getLogger("fleet_torchrl.evaluate")  # to stdout and the Hydra job's log file
+
+
+# the groups an evaluation reads (train.out_dir, table.policies_dir: where a policy is found)
+GROUPS = ("site", "state", "mdp", "agent", "train", "eval", "table")
 
 
 def preflight(cfg: Config, run_dir: str | Path | None) -> None:
@@ -39,11 +45,20 @@ def preflight(cfg: Config, run_dir: str | Path | None) -> None:
     written and holds nothing it would replace unasked (``eval.overwrite``), and a saved
     policy to evaluate exists and loads (its hash, finite weights, its agent and state)."""
     from .evaluation.results import check_result_path
-    from .store import make_policy
 
     if cfg.eval.out:
         check_result_path(cfg.eval.out, overwrite=cfg.eval.overwrite)
-    make_policy(cfg, device="cpu")  # a baseline is built from its config: nothing to read
+    policy_of(cfg, device="cpu")  # a baseline is built from its config: nothing to read
+
+
+def policy_of(cfg: Config, device: str | None = None) -> Policy:
+    """The policy ``cfg.agent`` names (:func:`~fleet_torchrl.store.make_policy` of its run
+    spec), on ``device`` (default ``eval.device``): a baseline built, a learned one loaded
+    from ``agent.policy``, ``train.out_dir`` or its folder under ``table.policies_dir``."""
+    from .store import make_policy
+
+    return make_policy(RunSpec.of(cfg), device or cfg.eval.device, cfg.table.policies_dir,
+                       cfg.table.follow_symlinks, cfg.train.out_dir)
 
 
 def output_paths(cfg: Config) -> list[tuple[str, Path]]:
@@ -55,12 +70,12 @@ def output_paths(cfg: Config) -> list[tuple[str, Path]]:
 def run(cfg: Config, out: str | Path | None) -> dict:
     from .evaluation import evaluate_with, format_table, save_result
     from .evaluation.results import check_result_path
-    from .store import make_policy, site_label
+    from .store import site_label
     from .utils.runinfo import run_info
 
     if out is not None:  # before the simulation, not after it
         check_result_path(out, overwrite=cfg.eval.overwrite if cfg.eval.out else None)
-    policy = make_policy(cfg)
+    policy = policy_of(cfg)
     e = cfg.eval
     result = evaluate_with(policy, cfg.site, e, name=cfg.agent.name)
     result["meta"] = run_info(cfg, seed=e.seed)
@@ -78,7 +93,7 @@ def task(dcfg: DictConfig) -> None:
     from hydra.core.hydra_config import HydraConfig
 
     with user_errors():
-        cfg = validated(dcfg)
+        cfg = validated(dcfg, GROUPS)
         out = cfg.eval.out or Path(HydraConfig.get().runtime.output_dir) / "eval.json"
         run(cfg, out)
 

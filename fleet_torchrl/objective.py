@@ -22,6 +22,10 @@ if TYPE_CHECKING:
     from .config import Config
 
 
+# the groups make objective reads
+GROUPS = ("site", "mdp", "eval", "table", "recipes", "objective")
+
+
 def preflight(cfg: Config, run_dir: str | None) -> None:
     """Before the run folder exists: ``objective.out`` can be written, and the folder of
     saved policies exists (without it the table would show the baselines only, as if no
@@ -38,11 +42,12 @@ def task(dcfg: DictConfig) -> None:
     from .utils.runinfo import run_info, write_json, write_text
 
     with user_errors():
-        cfg = validated(dcfg)
+        cfg = validated(dcfg, GROUPS)
         preflight(cfg, None)
         o = cfg.objective
         scores = {name: mdp_score(p, cfg.site, cfg.mdp, o.n_sites, o.seed, cfg.eval.device)
-                  for name, p in candidate_policies(cfg).items()}
+                  for name, p in candidate_policies(cfg.table, cfg.recipes,
+                                                    cfg.eval.device).items()}
         key = criterion(cfg.mdp)
         text = score_table(scores, key)
         print(text)

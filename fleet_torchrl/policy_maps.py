@@ -17,6 +17,10 @@ if TYPE_CHECKING:
     from .config import Config
 
 
+# the groups the maps read
+GROUPS = ("site", "eval", "table", "recipes", "maps")
+
+
 def preflight(cfg: Config, run_dir: str | None) -> None:
     """Before the run folder exists: ``maps.out`` can hold the maps."""
     from .utils.paths import check_output
@@ -26,10 +30,11 @@ def preflight(cfg: Config, run_dir: str | None) -> None:
 
 def task(dcfg: DictConfig) -> None:
     """Draw the action map of every policy of ``maps.policies``."""
+    from .config import compose_config
     from .experiments.policy_maps import run
 
     with user_errors():
-        run(validated(dcfg))
+        run(validated(dcfg, GROUPS), compose_config(["agent=planner"]).agent)
 
 
 main = hydra_command(task)

@@ -9,12 +9,13 @@ versions are still found. Evaluations and experiments find them
 again by name (:func:`saved_policy_path`, :func:`load_policies`, :func:`make_policy`).
 Every such path computed from a name stays inside ``table.policies_dir``: a policy folder
 there that is a symbolic link out of it is neither read nor written unless
-``table.follow_symlinks=true`` (:func:`inside_policies`); ``agent.policy=<path>`` and
+``table.follow_symlinks=true`` (:func:`inside`); ``agent.policy=<path>`` and
 ``train.out_dir=<path>`` name a place outside on purpose and are taken as they are.
 
-This module sits above the agents (it reads whole configs, duck-typed: ``cfg.agent``,
-``cfg.state``, ``cfg.mdp``, ``cfg.site``, ``cfg.train``, ``cfg.table``, ``cfg.eval``) and
-below the root config, which it never imports.
+This module sits above the agents and below the training and the root config, which it
+never imports: a function takes what it reads, a run's settings (:class:`Run`, which a
+:class:`~fleet_torchrl.training.spec.RunSpec` is) and the policies' folder, the device, the
+symlink setting, each as an argument.
 """
 
 from __future__ import annotations
@@ -25,14 +26,16 @@ import json
 from dataclasses import asdict
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import Protocol
 
 import torch
 import yaml
 
 from .agents.base import Policy
+from .agents.config import AgentConfig
 from .agents.policy_files import POLICY_FILE
 from .agents.registry import AGENTS, check_policy_fits_site, get_agent, load_policy_file
+from .env.config import MDPConfig, StateConfig
 from .sim import SiteConfig, SiteRanges
 from .utils.paths import check_inside, is_name
 
@@ -40,7 +43,21 @@ from .utils.paths import check_inside, is_name
 _SITE_PRESETS = resources.files(__name__.split(".")[0]).joinpath("conf", "site")
 
 
-def policy_name(cfg: Any) -> str:
+class Run(Protocol):
+    """What names a run's policy and what it is evaluated on: its site, state encoding,
+    decision process and agent (a :class:`~fleet_torchrl.training.spec.RunSpec` is one)."""
+
+    @property
+    def site(self) -> SiteConfig: ...
+    @property
+    def state(self) -> StateConfig: ...
+    @property
+    def mdp(self) -> MDPConfig: ...
+    @property
+    def agent(self) -> AgentConfig: ...
+
+
+def policy_name(cfg: Run) -> str:
     """Name of the policy a run of ``cfg`` makes, and so of the folder ``make train``
     publishes it to: one name per agent, state, objective and site, so that no run
     replaces the policy of another recipe (``tabular``, ``dqn_all_throughput``,
@@ -122,20 +139,6 @@ def inside(root: str | Path, path: str | Path, follow_symlinks: bool = False) ->
         check_inside("table.policies_dir", path, root, FOLLOW)
 
 
-def inside_policies(cfg: Any, path: str | Path) -> Path:
-    """:func:`inside` of ``cfg.table.policies_dir`` with ``cfg.table.follow_symlinks``."""
-    return inside(cfg.table.policies_dir, path, getattr(cfg.table, "follow_symlinks", False))
-
-
-def default_policy_dir(cfg: Any) -> Path:
-    """Where a training run of ``cfg`` publishes its policy: ``train.out_dir`` if set, else
-    ``<table.policies_dir>/<name>/seed<seed>`` (:func:`seed_dir`)."""
-    if cfg.train.out_dir:
-        return Path(cfg.train.out_dir)
-    return seed_dir(cfg.table.policies_dir, policy_name(cfg), cfg.seed,
-                    getattr(cfg.table, "follow_symlinks", False))
-
-
 def seed_dir(root: str | Path, name: str, seed: int, follow_symlinks: bool = False) -> Path:
     """Folder of the policy ``name`` trained with ``seed`` (``make train`` and ``make table``
     publish there), inside ``root`` (:func:`inside`)."""
@@ -154,23 +157,23 @@ def saved_policy_path(root: str | Path, name: str, follow_symlinks: bool = False
     return inside(root, seeds[0][1], follow_symlinks) if seeds else folder / POLICY_FILE
 
 
-def make_policy(cfg: Any, device: str | torch.device | None = None) -> Policy:
-    """The policy ``cfg.agent`` names: baselines from their config, learned ones from disk
-    (``agent.policy`` or the default location of their run)."""
+def make_policy(cfg: Run, device: str | torch.device, policies_dir: str | Path,
+                follow_symlinks: bool = False, out_dir: str | Path | None = None) -> Policy:
+    """The policy ``cfg.agent`` names, on ``device``: baselines from their config, learned
+    ones from disk: ``agent.policy``, else ``out_dir`` (a training's ``train.out_dir``), else
+    where its run published it under ``policies_dir`` (:func:`saved_policy_path`)."""
     spec = get_agent(cfg.agent.name)
-    device = device if device is not None else cfg.eval.device
     if not spec.trainable:
         return spec.make_policy(cfg.agent).to(device)
-    if cfg.agent.policy:
-        path = Path(cfg.agent.policy)
-    elif cfg.train.out_dir:
-        path = Path(cfg.train.out_dir)
+    if cfg.agent.policy:  # type: ignore[attr-defined]  (every learner's schema has it)
+        path = Path(cfg.agent.policy)  # type: ignore[attr-defined]
+    elif out_dir:
+        path = Path(out_dir)
     else:  # <name>/policy.pt of earlier versions, else the lowest seed trained
-        path = saved_policy_path(cfg.table.policies_dir, policy_name(cfg),
-                                 getattr(cfg.table, "follow_symlinks", False))
+        path = saved_policy_path(policies_dir, policy_name(cfg), follow_symlinks)
         other = site_suffix(cfg.site)
         if other and not path.is_file():  # names carry the site: say how to cross sites
-            home = Path(cfg.table.policies_dir) / policy_name(cfg).removesuffix(other)
+            home = Path(policies_dir) / policy_name(cfg).removesuffix(other)
             raise FileNotFoundError(
                 f"no saved policy at {path} (a policy trained on this site); to evaluate "
                 f"one trained on another site here, pass agent.policy=<its folder>, "
@@ -186,21 +189,21 @@ def make_policy(cfg: Any, device: str | torch.device | None = None) -> Policy:
     return policy
 
 
-def load_policies(cfg: Any, names: list[str]) -> dict[str, Policy]:
-    """Policies by name: baselines (``rule``, ``heuristic``) with their default parameters,
-    learned ones from ``cfg.table.policies_dir`` (:func:`saved_policy_path`)."""
+def load_policies(root: str | Path, names: list[str], device: str | torch.device,
+                  follow_symlinks: bool = False) -> dict[str, Policy]:
+    """Policies by name, on ``device``: baselines (``rule``, ``heuristic``) with their default
+    parameters, learned ones from the policies' folder ``root`` (:func:`saved_policy_path`)."""
     out: dict[str, Policy] = {}
     for name in names:
         spec = AGENTS.get(name)
         if spec is not None and not spec.trainable:
-            out[name] = spec.make_policy(spec.schema()).to(cfg.eval.device)
+            out[name] = spec.make_policy(spec.schema()).to(device)
         else:
-            out[name] = load_policy_file(saved_policy_path(
-                cfg.table.policies_dir, name, getattr(cfg.table, "follow_symlinks", False)),
-                cfg.eval.device)
+            out[name] = load_policy_file(saved_policy_path(root, name, follow_symlinks),
+                                         device)
             out[name].name = name
     return out
 
 
-__all__ = ["default_policy_dir", "inside", "inside_policies", "load_policies", "make_policy",
-           "policy_name", "saved_policy_path", "seed_dir", "site_preset", "site_suffix"]
+__all__ = ["Run", "inside", "load_policies", "make_policy", "policy_name", "saved_policy_path",
+           "seed_dir", "site_preset", "site_suffix"]

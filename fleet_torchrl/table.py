@@ -8,7 +8,7 @@
 ``fleet-table ARGS`` is ``fleet-train hydra/sweeper=table hydra.mode=MULTIRUN
 hydra.sweep.dir='${table.runs_dir}' ARGS`` (:data:`TABLE`): a Hydra multirun of the ``train``
 task whose sweeper (``conf/hydra/sweeper/table.yaml``,
-:class:`~fleet_torchrl.experiments.launch.TableSweep`) decides which trainings are needed,
+:class:`~fleet_torchrl.table_sweep.TableSweep`) decides which trainings are needed,
 launches them with the configured launcher and then evaluates; what it trains, evaluates and
 writes is :mod:`fleet_torchrl.experiments.table`.
 """
@@ -22,6 +22,8 @@ from .cli import hydra_command
 from .train import task
 
 _train_app = hydra_command(task)
+# the groups the table reads (its trainings, jobs of the train task, read train.GROUPS)
+GROUPS = ("site", "state", "mdp", "agent", "network", "train", "eval", "table", "recipes")
 # what makes the train app the table (a primary config of its own could not include
 # conf/config.yaml: Hydra takes hydra.searchpath, the users' conf/, from a primary only)
 TABLE = ["hydra/sweeper=table", "hydra.mode=MULTIRUN", "hydra.sweep.dir=${table.runs_dir}",

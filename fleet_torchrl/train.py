@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from .cli import hydra_command, validated
+from .training.spec import RunSpec
 from .utils.cli import user_errors
 
 if TYPE_CHECKING:
@@ -42,6 +43,10 @@ if TYPE_CHECKING:
 log = logging.getLogger("fleet_torchrl.train")  # Hydra writes it to stdout and <run dir>/train.log
 
 
+# the groups a training reads (table: policies_dir, follow_symlinks: where it publishes)
+GROUPS = ("site", "state", "mdp", "agent", "network", "train", "table")
+
+
 def preflight(cfg: Config, run_dir: str | Path | None) -> None:
     """What is checked before Hydra writes the run folder (:class:`~fleet_torchrl.cli.
     ValidateFirst`) and again before a job trains: the agent is a learner, the folder its
@@ -50,7 +55,6 @@ def preflight(cfg: Config, run_dir: str | Path | None) -> None:
     settings (a refused resume writes nothing), and the publish folder holds no policy this
     run would replace (:func:`~fleet_torchrl.training.publish.check_publish`)."""
     from .agents.registry import AGENTS, get_agent
-    from .store import default_policy_dir
     from .training.checkpoint import CHECKPOINT, check_resumable
     from .training.publish import check_publish
     from .utils.checks import ConfigError
@@ -66,20 +70,27 @@ def preflight(cfg: Config, run_dir: str | Path | None) -> None:
             "that evaluate loads, and a training starts from its own seed, not from a file; "
             "drop it (continue a run with resume=true hydra.run.dir=<its run folder>; choose "
             "where the trained policy goes with train.out_dir)")
+    spec = RunSpec.of(cfg)
     check_output("train.out_dir" if cfg.train.out_dir else "table.policies_dir",
-                 default_policy_dir(cfg), "dir")
+                 publish_folder(cfg), "dir")
     if cfg.resume and run_dir is not None:
-        check_resumable(Path(run_dir) / CHECKPOINT, cfg)
-    check_publish(cfg, default_policy_dir(cfg), run_dir)
+        check_resumable(Path(run_dir) / CHECKPOINT, spec)
+    check_publish(spec, publish_folder(cfg), run_dir, cfg.resume)
     check_training_sites(cfg)
+
+
+def publish_folder(cfg: Config) -> Path:
+    """Where a training of ``cfg`` publishes its policy: ``train.out_dir``, else its folder
+    under ``table.policies_dir`` (:func:`~fleet_torchrl.training.publish.publish_dir`)."""
+    from .training.publish import publish_dir
+
+    return publish_dir(RunSpec.of(cfg), cfg.table.policies_dir, cfg.table.follow_symlinks)
 
 
 def output_paths(cfg: Config) -> list[tuple[str, Path]]:
     """What a run of ``cfg`` writes outside its run folder: its publish folder (two jobs of
     a multirun must not share it)."""
-    from .store import default_policy_dir
-
-    return [("publish folder", default_policy_dir(cfg))]
+    return [("publish folder", publish_folder(cfg))]
 
 
 def claim(cfg: Config, run_dir: str | Path) -> None:
@@ -119,7 +130,7 @@ def train(cfg: Config, run_dir: str | Path) -> dict:
         if cfg.train.threads:
             torch.set_num_threads(cfg.train.threads)
         write_json(Path(run_dir) / "run_info.json", run_info(cfg, seed=cfg.seed))
-        trainer = Trainer(cfg, run_dir)
+        trainer = Trainer(RunSpec.of(cfg), run_dir, publish_folder(cfg), cfg.resume)
         summary = trainer.run()
     finally:
         release_run_dir(run_dir)
@@ -137,7 +148,7 @@ def task(dcfg: DictConfig) -> float:
     from hydra.core.hydra_config import HydraConfig
 
     with user_errors():
-        cfg = validated(dcfg)
+        cfg = validated(dcfg, GROUPS)
         summary = train(cfg, HydraConfig.get().runtime.output_dir)
     return (summary["best"] or {}).get("trips", float("nan"))
 

@@ -11,9 +11,12 @@ import fleet_torchrl
 
 PKG = Path(fleet_torchrl.__file__).resolve().parent
 # lower rank = lower layer; a module imports only from its own layer or lower ones
+# experiments/ takes resolved run specs and typed schemas: it sits below the root config
+# (which composes its schemas, experiments/config.py); the commands and the table's sweeper
+# (table_sweep.py, the launcher layer) compose and pass them in
 RANK = {"utils": 0, "sim": 1, "env": 2, "agents": 3, "evaluation": 4, "store": 4,
-        "training": 5, "config": 6, "experiments": 7}
-COMMAND_RANK = 8  # the thin command modules at the top of the package
+        "training": 5, "experiments": 6, "config": 7}
+COMMAND_RANK = 8  # the thin command modules and the table's sweeper at the top of the package
 
 
 def module_name(path: Path) -> str:
@@ -134,3 +137,28 @@ print(len(options), sorted(m for m in sys.modules if m.split(".")[0] in {HEAVY!r
     assert r.returncode == 0, r.stderr[-2000:]
     count, heavy = r.stdout.split(" ", 1)
     assert int(count) >= 20 and heavy.strip() == "[]", r.stdout
+
+
+def test_experiments_take_resolved_specs_and_never_compose():
+    """experiments/ sits below the root config: the commands and the table's sweeper
+    (``fleet_torchrl.table_sweep``) compose and pass run specs and typed schemas in; no
+    module of experiments/ imports ``fleet_torchrl.config`` (the folder loop
+    config -> experiments.config -> ... -> config) or calls ``compose_config``."""
+    bad = [f"{mod} -> {dep}" for mod, deps in modules().items()
+           if mod.startswith("fleet_torchrl.experiments") for dep in deps
+           if dep == "fleet_torchrl.config"]
+    assert not bad, bad
+    calls = [str(p.relative_to(PKG)) for p in (PKG / "experiments").rglob("*.py")
+             if "compose_config" in p.read_text()]
+    assert not calls, calls
+
+
+def test_no_function_of_the_experiments_is_longer_than_80_lines():
+    long = []
+    for p in (PKG / "experiments").rglob("*.py"):
+        for node in ast.walk(ast.parse(p.read_text())):
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                n = node.end_lineno - node.lineno + 1
+                if n > 80:
+                    long.append(f"{p.name}:{node.name} ({n} lines)")
+    assert not long, long

@@ -469,10 +469,10 @@ def test_a_diverged_training_publishes_nothing(tmp_path):
     """A policy whose weights turn NaN (an overflowing reward, a learning rate too large) stops
     the training at its next evaluation with one line; no policy is published."""
     from fleet_torchrl.config import compose_config
-    from fleet_torchrl.training import Trainer
+    from fleet_torchrl.training import RunSpec, Trainer
 
     cfg = compose_config([*TINY, f"train.out_dir={tmp_path / 'policy'}"])
-    tr = Trainer(cfg, tmp_path / "run")
+    tr = Trainer(RunSpec.of(cfg), tmp_path / "run")
     tr.learner.table.q.fill_(float("nan"))
     with pytest.raises(ValueError, match="diverged") as e:
         tr.run()
@@ -509,11 +509,11 @@ def test_a_budget_that_is_not_what_runs_is_announced(tmp_path, caplog):
     """train.max_episodes=1 trains a whole round of agent.num_sites episodes: said in one
     warning line, not silently."""
     from fleet_torchrl.config import compose_config
-    from fleet_torchrl.training import Trainer
+    from fleet_torchrl.training import RunSpec, Trainer
 
     cfg = compose_config([*TINY, "train.max_episodes=1", f"train.out_dir={tmp_path / 'p'}"])
     with caplog.at_level("WARNING"):
-        Trainer(cfg, tmp_path / "run")
+        Trainer(RunSpec.of(cfg), tmp_path / "run")
     said = [r.getMessage() for r in caplog.records if "train.max_episodes=1" in r.getMessage()]
     assert len(said) == 1 and "16 episodes" in said[0] and "\n" not in said[0], said
 
@@ -524,7 +524,7 @@ def test_a_second_process_cannot_train_in_a_held_run_folder(tmp_path):
     with one line naming the holder, before it writes anything; the hold ends with its
     process however it ends, and the same process may hold the folder again."""
     from fleet_torchrl.config import compose_config
-    from fleet_torchrl.training import Trainer
+    from fleet_torchrl.training import RunSpec, Trainer
     from fleet_torchrl.utils.checks import SetupError
     from fleet_torchrl.utils.paths import hold_run_dir, release_run_dir
 
@@ -540,7 +540,7 @@ def test_a_second_process_cannot_train_in_a_held_run_folder(tmp_path):
         before = snapshot(tmp_path)
         cfg = compose_config([*TINY, f"train.out_dir={tmp_path / 'policy'}"])
         with pytest.raises(SetupError, match="a run already trains there"):
-            Trainer(cfg, tmp_path)
+            Trainer(RunSpec.of(cfg), tmp_path)
         assert snapshot(tmp_path) == before
     finally:
         holder.kill()
@@ -1508,3 +1508,21 @@ def test_a_refused_state_changes_nothing():
     with pytest.raises(ValueError, match=r"site\.soc"):
         env.load_state_dict(bad)
     assert all(torch.equal(v, before[k]) for k, v in env.state_dict().items())
+
+
+# ---- typed run specs: each command checks the groups it reads
+
+
+def test_a_bad_setting_of_a_group_a_command_does_not_read_is_ignored(workdir, command):
+    """evaluate reads no sweep, maps or bench: bad values there neither stop it nor change
+    its result; sweeps, which reads them, refuses the same value in one line."""
+    from fleet_torchrl import evaluate, sweeps
+
+    out = workdir / "rule.json"
+    assert command(evaluate.main, "sweep.param=bogus", "bench.batches=[0]", "maps.out=afile",
+                   "eval.n_sims=2", "eval.ticks=50", "eval.progress=false",
+                   f"eval.out={out}", f"hydra.run.dir={workdir / 'run'}") == 0
+    assert json.loads(out.read_text())["n_sims"] == 2
+    before = snapshot(workdir)
+    assert command(sweeps.main, "sweep.param=bogus", f"hydra.run.dir={workdir / 'run2'}") == 2
+    assert snapshot(workdir) == before

@@ -60,6 +60,29 @@ def test_help_is_fast_and_imports_no_heavy_package(name, tmp_path):
     heavy = r.stdout.split("HEAVY ")[1].strip()
     assert heavy == "[]", heavy
     assert not list(tmp_path.iterdir())  # no outputs/ for a --help
+    groups = getattr(importlib.import_module(module), "GROUPS", None)
+    if groups is not None:  # the groups it reads, listed (the table: its own, not train's)
+        assert f"== Groups {name} reads ==\n{', '.join(groups)}, seed\n" in r.stdout
+
+
+def test_a_command_checks_only_the_groups_it_reads():
+    """A setting of a group a command does not read is composed and ignored (a bad sweep
+    value does not stop an evaluation); the command that reads it refuses it."""
+    from fleet_torchrl import evaluate, sweeps, train
+    from fleet_torchrl.config import GROUPS, compose_config
+    from fleet_torchrl.utils.checks import ConfigError
+
+    bad = ["sweep.param=bogus", "maps.out=", "objective.n_sites=0", "bench.repeats=0"]
+    for groups in (evaluate.GROUPS, train.GROUPS):
+        cfg = compose_config(bad, groups=groups)
+        assert cfg.sweep.param == "bogus" and cfg.bench.repeats == 0
+    with pytest.raises(ConfigError, match="sweep.param"):
+        compose_config(bad[:1], groups=sweeps.GROUPS)
+    with pytest.raises(ConfigError, match="bench.repeats"):
+        compose_config(bad[-1:])  # every group by default (the library's, the tests')
+    assert set(train.GROUPS) < set(GROUPS) and set(evaluate.GROUPS) < set(GROUPS)
+    with pytest.raises(ConfigError, match="eval.n_sims"):  # what a command reads: checked
+        compose_config(["eval.n_sims=0"], groups=evaluate.GROUPS)
 
 
 def test_tools_list_their_own_settings_only():
@@ -87,7 +110,8 @@ def test_a_run_validates_its_config_once(tmp_path, monkeypatch, command):
 
     calls = []
     real = config.validate
-    monkeypatch.setattr(config, "validate", lambda cfg: calls.append(1) or real(cfg))
+    monkeypatch.setattr(config, "validate",
+                        lambda cfg, *groups: calls.append(1) or real(cfg, *groups))
     monkeypatch.setattr(config, "compose_config", lambda *a: pytest.fail("composed again"))
     monkeypatch.chdir(tmp_path)
     out = tmp_path / "rule.json"

@@ -25,13 +25,13 @@ def test_protocol_on_cuda_gives_the_cpu_records(policy):
 @pytest.mark.parametrize("agent", [["agent=tabular"], ["agent=dqn", "state=partial"]])
 def test_short_training_on_cuda(tmp_path, agent):
     from fleet_torchrl.agents import load_policy_file
-    from fleet_torchrl.training import Trainer
+    from fleet_torchrl.training import RunSpec, Trainer
 
     cfg = compose_config([*agent, "train.device=cuda", "agent.num_sites=64",
                           "train.max_episodes=128", "train.eval_every=1", "train.eval_sims=32",
                           "train.eval_ticks=500", "mdp.tau_e=500", "train.progress=false",
                           "train.tensorboard=false", f"train.out_dir={tmp_path / 'pol'}"])
-    trainer = Trainer(cfg, tmp_path / "run")
+    trainer = Trainer(RunSpec.of(cfg), tmp_path / "run")
     summary = trainer.run()
     assert summary["best"] is not None and summary["frames"] > 0
     assert next(iter(trainer.learner.policy().buffers()), next(

@@ -52,10 +52,10 @@ def _recipe(cfg) -> tuple:
 
 def _published(overrides: list[str]) -> tuple[str, tuple]:
     from fleet_torchrl.config import compose_config
-    from fleet_torchrl.store import default_policy_dir
+    from fleet_torchrl.train import publish_folder
 
     cfg = compose_config(overrides)
-    return default_policy_dir(cfg).as_posix(), _recipe(cfg)
+    return publish_folder(cfg).as_posix(), _recipe(cfg)
 
 
 def test_every_readme_training_command_publishes_to_its_own_recipes_folder():

@@ -31,7 +31,22 @@ import numpy as np
 import torch
 from torch import Tensor
 
-MDPConfig = Any  # an ``env.config.MDPConfig`` (not imported: the config imports this module)
+
+class MDPConfig(Protocol):
+    """The settings of the decision process an objective reads: what an
+    :class:`fleet_torchrl.env.config.MDPConfig` has (not imported here: its ``validate``
+    imports this module)."""
+
+    @property
+    def p_f(self) -> float: ...
+    @property
+    def p_q(self) -> float: ...
+    @property
+    def gamma(self) -> float: ...
+    @property
+    def gamma_tick(self) -> float: ...
+    @property
+    def rho(self) -> float: ...
 
 
 class StepEvents(Protocol):

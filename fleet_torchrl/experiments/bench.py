@@ -28,6 +28,7 @@ import torch
 from ..agents import RulePolicy, as_td_module
 from ..evaluation import simulate
 from ..sim import Site, SiteConfig, SiteRanges, fused
+from ..training.spec import RunSpec
 
 
 def median_time(fn, repeats: int) -> float:
@@ -139,28 +140,27 @@ def bench_kernel(b: int, ticks: int, repeats: int, device: str = "cpu") -> float
     return median_time(run, repeats)
 
 
-def bench_training(recipes: dict[str, list[str]], rounds: int = 4, device: str = "cpu"
-                   ) -> dict[str, dict[str, float]]:
-    """Training throughput of each recipe (name -> its training overrides: the table's runs,
-    ``conf/recipes/``): decisions per second over ``rounds`` rounds (collection, learning and
-    the round's bookkeeping; evaluation, checkpoints and TensorBoard left out), after one
-    warm-up round."""
-    from ..config import compose_config
+def bench_training(specs: dict[str, RunSpec], rounds: int = 4) -> dict[str, dict[str, float]]:
+    """Training throughput of each recipe (name -> its training's run spec: the table's
+    runs, ``conf/recipes/``, on the benchmark's device): decisions per second over
+    ``rounds`` rounds (collection, learning and the round's bookkeeping; evaluation,
+    checkpoints and TensorBoard left out), after one warm-up round."""
+    from dataclasses import replace
+
     from ..training import Trainer
 
     out = {}
     with tempfile.TemporaryDirectory() as d:
-        for name, overrides in recipes.items():
-            cfg = compose_config([*overrides, f"train.device={device}", "train.progress=false",
-                                  "train.tensorboard=false", f"train.out_dir={d}/{name}"])
-            trainer = Trainer(cfg, f"{d}/{name}_run")
+        for name, spec in specs.items():
+            spec = replace(spec, train=replace(spec.train, out_dir=f"{d}/{name}"))
+            trainer = Trainer(spec, f"{d}/{name}_run")
             trainer.play_round()  # warm-up (buffers fill, kernel loaded)
             t0 = time.perf_counter()
             frames = sum(trainer.play_round()["frames"] for _ in range(rounds))
             dt = time.perf_counter() - t0
             # the search simulates its own population (population x sites per generation)
-            sites = (cfg.agent.population * cfg.agent.sites
-                     if trainer.learner.steps_per_round == 0 else cfg.agent.num_sites)
+            sites = (spec.agent.population * spec.agent.sites
+                     if trainer.learner.steps_per_round == 0 else spec.agent.num_sites)
             out[name] = {"decisions_per_s": frames / dt, "round_s": dt / rounds,
                          "sites": sites}
     return out

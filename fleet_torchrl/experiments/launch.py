@@ -4,16 +4,9 @@
   job of any multirun ends (the grid, the sweeps, the table's trainings), ``k of N`` jobs
   done, what the job was and how long it took. Jobs may run in other processes (joblib), on
   other machines (Slurm, Ray): they count in files of the sweep folder, under a lock.
-* :class:`TableSweep` is what ``hydra/sweeper=table`` runs (``make table``): the table's
-  trainings are jobs of the ``train`` task launched by the configured launcher
-  (``hydra/launcher``: two local processes by default, Slurm or Ray like any sweep), and the
-  evaluation follows in the launching process. Which jobs to launch is decided first: a
-  recipe and seed whose published policy matches its settings is reused, a run folder
-  holding a checkpoint of the same settings is resumed, one of other settings is set aside
-  (:mod:`fleet_torchrl.experiments.table`).
-
-Hydra only loads sweepers from its ``hydra_plugins`` package, so the sweeper class itself is
-``hydra_plugins/fleet_torchrl_table/table_sweeper.py``, which hands over to this module.
+* :func:`sweep_jobs`, :func:`progress_callback`, :func:`torch_threads`: what a sweeper of
+  this project reads of Hydra's (the table's, :mod:`fleet_torchrl.table_sweep`, resolves
+  the table's trainings into run specs and launches them).
 """
 
 from __future__ import annotations
@@ -176,84 +169,7 @@ def progress_callback(hydra_context: Any) -> JobProgress | None:
     return next((c for c in callbacks if isinstance(c, JobProgress)), None)
 
 
-class TableSweep:
-    """``make table`` as a Hydra sweep (see the module docstring): plan, launch the trainings
-    that are needed, evaluate."""
-
-    def __init__(self, hydra_context: Any, task_function: Any, config: Any) -> None:
-        self.hydra_context = hydra_context
-        self.task_function = task_function
-        self.config = config
-
-    def sweep(self, arguments: list[str]) -> list[Any]:
-        from omegaconf import OmegaConf, open_dict, read_write
-
-        from ..config import to_config, without_hydra
-        from ..utils.cli import user_errors
-        from .table import (
-            WAVES,
-            check_outputs,
-            evaluate_table,
-            plan_jobs,
-            recorded_train_time,
-            training_seeds,
-        )
-
-        with user_errors():
-            cfg = to_config(without_hydra(self.config))
-            check_outputs(cfg)
-        runs_dir = cfg.table.runs_dir
-        with read_write(self.config.hydra), open_dict(self.config.hydra):
-            self.config.hydra.sweep.dir = runs_dir  # where the launcher creates its folders
-        n_jobs = OmegaConf.select(self.config, "hydra.launcher.n_jobs")
-        one_at_a_time = n_jobs == 1 or OmegaConf.select(
-            self.config, "hydra.launcher._target_", default="").endswith("BasicLauncher")
-        returns = []
-        for wave in range(WAVES):  # recipes whose teachers plan over others' policies last
-            with user_errors():
-                jobs = plan_jobs(cfg, progress=cfg.train.progress and one_at_a_time,
-                                 wave=wave)
-            returns += self._run_jobs(jobs, runs_dir, n_jobs, wave, first_idx=len(returns))
-        if cfg.table.evaluate:
-            times = {(n, s): recorded_train_time(n, s, cfg)
-                     for n in cfg.table.names(cfg.recipes) for s in training_seeds(cfg)}
-            with user_errors():
-                evaluate_table(cfg, times)
-        return returns
-
-    def _run_jobs(self, jobs: list[Any], runs_dir: str, n_jobs: Any, wave: int,
-                  first_idx: int = 0) -> list[Any]:
-        """Launch one wave of the table's trainings; exit 1 if any failed."""
-        from hydra.core.plugins import Plugins
-        from hydra.core.utils import JobStatus
-
-        progress = progress_callback(self.hydra_context)
-        if progress is not None:
-            progress.set_total(len(jobs), name="table" if wave == 0 else "table, wave 2")
-        returns = []
-        if jobs:
-            print(f"[table] {len(jobs)} trainings to run ({n_jobs or 1} at a time), "
-                  f"run folders in {runs_dir}/", flush=True)
-            launcher = Plugins.instance().instantiate_launcher(
-                hydra_context=self.hydra_context, task_function=self.task_function,
-                config=self.config)
-            threads = _torch_threads()
-            returns = list(launcher.launch([j.overrides for j in jobs],
-                                           initial_job_idx=first_idx))
-            _torch_threads(threads)  # a job run in this process sets its own
-        failed = [(j, r) for j, r in zip(jobs, returns, strict=True)
-                  if r.status != JobStatus.COMPLETED]
-        for job, r in failed:
-            print(f"error: training {job.name} seed {job.seed} failed "
-                  f"({type(r._return_value).__name__}: {r._return_value}); see "
-                  f"{Path(runs_dir) / job.folder}/train.log; rerun `make table` to resume it "
-                  "from its checkpoint", file=sys.stderr)
-        if failed:
-            sys.exit(1)
-        return returns
-
-
-def _torch_threads(n: int | None = None) -> int | None:
+def torch_threads(n: int | None = None) -> int | None:
     """torch's CPU thread count (set it to ``n``), if torch is loaded."""
     torch = sys.modules.get("torch")
     if torch is None:
@@ -263,4 +179,4 @@ def _torch_threads(n: int | None = None) -> int | None:
     return torch.get_num_threads()
 
 
-__all__ = ["JobFailed", "JobProgress", "TableSweep", "sweep_jobs"]
+__all__ = ["JobFailed", "JobProgress", "progress_callback", "sweep_jobs", "torch_threads"]

@@ -33,7 +33,9 @@ from ..sim import SiteConfig
 from ..store import load_policies, saved_policy_path
 
 if TYPE_CHECKING:
-    from ..config import Config
+    from collections.abc import Iterable
+
+    from .config import TableConfig
 
 
 @torch.no_grad()
@@ -71,17 +73,19 @@ def mdp_score(policy: Policy, site_cfg: SiteConfig, mdp_cfg: MDPConfig, n_sites:
             "queue": float(queue.mean()), "failure_rate": float(failed.float().mean())}
 
 
-def candidate_policies(cfg: Config) -> dict[str, Policy]:
-    """Rule, heuristic family, and the learned policies saved under ``table.policies_dir``."""
+def candidate_policies(table: TableConfig, recipes: Iterable[str], device: str
+                       ) -> dict[str, Policy]:
+    """Rule, heuristic family, and the learned policies of ``recipes`` saved under
+    ``table.policies_dir``."""
     pols: dict[str, Policy] = {"rule": RulePolicy()}
     for upper in (50.0, 55.0, 60.0, 65.0, 70.0, 75.0, 80.0):
         pols[f"heuristic_{upper:g}"] = HeuristicPolicy(40.0, upper)
     # early charging only while another vehicle is at most 75: as little queueing, more trips
     pols["heuristic_65_75"] = HeuristicPolicy(40.0, 65.0, others_below=75.0)
-    root = cfg.table.policies_dir
-    saved = [name for name in cfg.recipes
-             if saved_policy_path(root, name, cfg.table.follow_symlinks).is_file()]
-    return {**pols, **load_policies(cfg, saved)}
+    root = table.policies_dir
+    saved = [name for name in recipes
+             if saved_policy_path(root, name, table.follow_symlinks).is_file()]
+    return {**pols, **load_policies(root, saved, device, table.follow_symlinks)}
 
 
 def criterion(mdp_cfg: MDPConfig) -> str:

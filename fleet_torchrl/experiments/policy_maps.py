@@ -17,14 +17,13 @@ the configured site.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, Protocol
 
 import torch
 
 from ..agents.base import Policy
 from ..agents.baselines import HeuristicPolicy
 from ..agents.planner import PlannerPolicy
-from ..config import compose_config
 from ..env.encodings import get_encoding
 from ..evaluation import simulate
 from ..store import load_policies, site_preset
@@ -37,7 +36,18 @@ from ..utils.plotting import (
 )
 
 if TYPE_CHECKING:
-    from ..config import Config
+    from ..evaluation.config import EvalConfig
+    from ..sim import SiteConfig
+    from .config import MapsConfig, TableConfig
+
+
+class MapsRun(Protocol):
+    """What the maps read of the command's config."""
+
+    maps: MapsConfig
+    table: TableConfig
+    site: SiteConfig
+    eval: EvalConfig
 
 BINS = 20  # cells per axis of the planner's maps (5 % of soc, 1/20 of TC)
 
@@ -81,9 +91,9 @@ def shares_figure(shares: dict[str, torch.Tensor], title: str):
          (shares["others"], "lowest soc of the others", (0.0, 100.0))], title)
 
 
-def planner_maps(cfg: Config) -> list[Path]:
+def planner_maps(cfg: MapsRun, agent: Any) -> list[Path]:
+    """The planner's decision shares (``agent``: its settings) on ``maps.planner_sites``."""
     out, paths = Path(cfg.maps.out), []
-    agent = compose_config(["agent=planner"]).agent
     for name in cfg.maps.planner_sites:
         site = site_preset(name)
         if site is None:
@@ -97,10 +107,13 @@ def planner_maps(cfg: Config) -> list[Path]:
     return paths
 
 
-def run(cfg: Config) -> list[Path]:
+def run(cfg: MapsRun, planner: Any) -> list[Path]:
+    """The map of every policy of ``maps.policies``, then the planner's (``planner``: its
+    settings, :func:`planner_maps`)."""
     out = Path(cfg.maps.out)
     paths = []
-    for name, pol in load_policies(cfg, cfg.maps.policies).items():
+    for name, pol in load_policies(cfg.table.policies_dir, cfg.maps.policies, cfg.eval.device,
+                                   cfg.table.follow_symlinks).items():
         pol = pol.cpu()
         if pol.encoding in MAP_ENCODINGS:
             fig = plot_policy_map(pol, title=f"{name}: charge (orange) / pass, by TC")
@@ -112,4 +125,4 @@ def run(cfg: Config) -> list[Path]:
                                         "the states it met")
         paths.append(save_figure(fig, out / f"{name}.png"))
         print(f"[policy-maps] {paths[-1]}")
-    return paths + planner_maps(cfg)
+    return paths + planner_maps(cfg, planner)

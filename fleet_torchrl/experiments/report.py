@@ -74,6 +74,8 @@ def _improvement_table(rows: list[dict[str, Any]]) -> str:
 
 
 def build(results: Path, out: Path) -> str:
+    """The report's markdown: its heading, then one section per experiment, each read from
+    the result files under ``results`` (figures copied beside ``out``)."""
     report_dir = out.parent
     figures = report_dir / "figures"
     parts = ["# fleet_torchrl: results report", "",
@@ -82,6 +84,14 @@ def build(results: Path, out: Path) -> str:
              " Every number below is read from those files; regenerate with `make report`. "
              "What the numbers mean, and why the learned policies fall short of the thesis's "
              "gains on this site model: [TRAINING.md](TRAINING.md).", ""]
+    for section in (_timings, _table, _maps, _sweeps, _grid):
+        parts += section(results, figures, report_dir)
+    return "\n".join(parts).rstrip() + "\n"
+
+
+def _timings(results: Path, figures: Path, report_dir: Path) -> list[str]:
+    """How the results were made (``timings.json``)."""
+    parts: list[str] = []
     timings = results / "timings.json"
     if timings.exists():
         t = read_json(timings)
@@ -94,6 +104,12 @@ def build(results: Path, out: Path) -> str:
                   "searches whose settings match, so it can be much shorter than a run from an "
                   "empty `results/` (those are in [BENCHMARKS.md](BENCHMARKS.md)).", ""]
 
+    return parts
+
+
+def _table(results: Path, figures: Path, report_dir: Path) -> list[str]:
+    """The main comparison (``table/``)."""
+    parts: list[str] = []
     parts += ["## Main comparison (MODEL §5 item 1)", ""]
     table = results / "table" / "table.md"
     if table.exists():
@@ -113,6 +129,12 @@ def build(results: Path, out: Path) -> str:
     else:
         parts += ["Not run yet: `make table`.", ""]
 
+    return parts
+
+
+def _maps(results: Path, figures: Path, report_dir: Path) -> list[str]:
+    """The policy maps (``policy_maps/``)."""
+    parts: list[str] = []
     parts += ["## Policy maps (MODEL §5 item 2)", "",
               "Action over `soc_D` (y) x lowest soc of the other vehicles (x); orange = charge.",
               ""]
@@ -124,6 +146,12 @@ def build(results: Path, out: Path) -> str:
     else:
         parts += ["Not run yet: `make policy-maps`.", ""]
 
+    return parts
+
+
+def _sweeps(results: Path, figures: Path, report_dir: Path) -> list[str]:
+    """The generalisation sweeps (``sweeps/``)."""
+    parts: list[str] = []
     parts += ["## Generalisation sweeps (MODEL §5 item 3)", "",
               "Policies trained on the default site and the `generalist` (trained on the "
               "site distribution, MODEL §3.5), evaluated on changed sites, beside the point's "
@@ -164,6 +192,12 @@ def build(results: Path, out: Path) -> str:
         if s.get("failed") or s.get("missing"):
             parts += [f"Incomplete: failed {s.get('failed')}, missing {s.get('missing')}.", ""]
 
+    return parts
+
+
+def _grid(results: Path, figures: Path, report_dir: Path) -> list[str]:
+    """The grid search (``grid/``)."""
+    parts: list[str] = []
     parts += ["## Grid search over the DQN network (MODEL §5 item 4)", ""]
     grid = results / "grid" / "summary.md"
     if grid.exists():
@@ -171,4 +205,4 @@ def build(results: Path, out: Path) -> str:
         parts += body[1:] + [""]
     else:
         parts += ["Not run yet: `make grid`.", ""]
-    return "\n".join(parts).rstrip() + "\n"
+    return parts

@@ -59,243 +59,311 @@ what is missing); a job trains only its point's searches.
 
 from __future__ import annotations
 
-import hashlib
-import json
 import time
+from contextlib import contextmanager
 from dataclasses import replace
 from functools import partial
 from pathlib import Path
 from typing import Any
 
-from ..agents import AGENTS, load_policy_file
-from ..agents.base import GuardedPolicy, Policy
+from ..agents.base import Policy
 from ..agents.baselines import HeuristicPolicy
-from ..agents.config import BASELINE_BASES
-from ..agents.planner import PlannerPolicy
-from ..agents.policy_files import POLICY_FILE, policy_file_sha256
-from ..agents.registry import base_policy
-from ..agents.search import SearchPolicy, cell_centres, clone_policy, threshold_start
-from ..config import Config, compose_config
-from ..evaluation import evaluate_policy, evaluate_with, gain_over, seed_interval
+from ..agents.policy_files import POLICY_FILE
+from ..evaluation import evaluate_with
 from ..evaluation.cache import EvalCache, policy_fingerprint, site_identity
 from ..sim import SiteConfig
-from ..store import inside_policies, load_policies, saved_policy_path
-from ..training import Trainer, result_fingerprint
 from ..training.checkpoint import without_neutral
 from ..utils.checks import ConfigError
-from ..utils.runinfo import file_sha256, read_json, run_info, to_jsonable, write_json
+from ..utils.runinfo import read_json, write_json
+from .config import SweepConfig
 from .improvement import improvement, paired_points
-from .table import reusable
-
-POINT_FIELDS = ("param", "value", "policy", "seeds", "trips_mean", "trips_std", "queue_mean",
-                "failure_rate", "failure_rate_max", "gain_pct", "gain_ci95", "gain_per_seed",
-                "share_of_best_known_pct", "improvement_pct", "improvement_ci95",
-                "improvement_sims", "improvement_seed")
-IMPROVEMENT_FIELDS = POINT_FIELDS[-4:]
-BEST_KNOWN = "best_known"  # the row of the best policy known at the point
-PLANNER = "planner"  # the rollout planner over the heuristic
-PLANNER_SEARCH = "planner_search"  # the rollout planner over the point's best search
-DISTILLED = "specialist_distilled"  # the point's best planner distilled on its site
-
-
-def digest(obj: Any) -> str:
-    """A short stable hash of a JSON-ready object."""
-    text = json.dumps(to_jsonable(obj), sort_keys=True, default=str)
-    return hashlib.sha256(text.encode()).hexdigest()[:16]
-
-
-def policy_identity(cfg: Config, name: str) -> str:
-    """What a policy of ``sweep.policies`` is: a baseline's parameters, or the hash of the
-    saved policy file the name stands for."""
-    spec = AGENTS.get(name)
-    if spec is not None and not spec.trainable:
-        return f"{name}:{digest(without_neutral(spec.schema()))}"
-    path = saved_policy_path(cfg.table.policies_dir, name, cfg.table.follow_symlinks)
-    if not path.is_file():
-        return f"{name}:missing"
-    return f"{name}:{file_sha256(path)[:16]}"
+from .rows import IMPROVEMENT_FIELDS, POINT_FIELDS, Candidate, Row
+from .sweep_candidates import (
+    BEST_KNOWN,
+    DISTILLED,
+    PLANNER,
+    PLANNER_SEARCH,
+    PointSettings,
+    Pool,
+    _named,
+    best_of,
+    class_start,
+    distil_base,
+    distil_state,
+    distil_teacher,
+    guard,
+    is_learned,
+    load_saved,
+    make_planner,
+    on_pick_set,
+    plan_candidates,
+    point_training,
+    search_base,
+    search_start,
+)
+from .sweep_keys import CACHE_VERSION, digest, point_key, seed_paths, twin_key
 
 
-def search_config(cfg: Config, site: SiteConfig, overrides: list[str]) -> Config:
-    """The training config of one of the point's searches (its overrides on the search
-    defaults, the point's site)."""
-    run_cfg = compose_config(["agent=search", "train.threads=1", *overrides,
-                              "train.progress=false", "train.tensorboard=false"])
-    run_cfg.site = site
-    return run_cfg
+def point_value(param: str, value: float) -> float | int:
+    """The point's value as the site field takes it (validated: an integer parameter's value
+    is integral, never rounded here)."""
+    return int(value) if param in ("t_c", "n_vehicles") else float(value)
 
 
-def planner_config(cfg: Config) -> Any:
-    """The planner's settings (``agent=planner`` with ``sweep.planner_overrides``)."""
-    return compose_config(["agent=planner", *cfg.sweep.planner_overrides]).agent
+def point_site(sweep: SweepConfig, site: SiteConfig) -> SiteConfig:
+    """The site of the point: ``site`` with ``sweep.param`` at ``sweep.value``, named
+    ``<param>=<value>``; a site distribution is refused."""
+    param, value = sweep.param, point_value(sweep.param, sweep.value)
+    if site.randomized:
+        raise ConfigError(f"site={site.name!r} is a site distribution: a sweep varies "
+                          f"{param} of one site; run it on a single site (e.g. site=default)")
+    return replace(site, **{param: value}, name=f"{param}={value}").validate()
 
 
-def make_planner(cfg: Config, base: Policy) -> PlannerPolicy:
-    """The sweep's planner over ``base`` (and the parallel rollout's other bases, if its
-    settings name any)."""
-    agent = planner_config(cfg)
-    return PlannerPolicy.from_config(agent, base, [base_policy(b) for b in agent.bases])
+def specialist_seeds(sweep: SweepConfig, seed: int, label: str) -> list[int]:
+    """The training seeds of the point ``label``'s specialists."""
+    n = (max(sweep.more_seeds, sweep.specialist_seeds) if label in sweep.more_seeds_at
+         else sweep.specialist_seeds)
+    return [seed + k for k in range(n)]
 
 
-def eval_cache(cfg: Config) -> EvalCache:
+def eval_cache(sweep: SweepConfig) -> EvalCache:
     """The sweeps' evaluation cache (``<sweep.search_dir>/evaluations``, unless
     ``sweep.eval_cache=false``)."""
-    return EvalCache(Path(cfg.sweep.search_dir) / "evaluations" if cfg.sweep.eval_cache
-                     else None)
+    return EvalCache(Path(sweep.search_dir) / "evaluations" if sweep.eval_cache else None)
 
 
-def on_pick_set(cfg: Config, site: SiteConfig, pol: Policy, cache: EvalCache | None = None
-                ) -> tuple[float, float]:
-    """``(failure rate, -mean trips)`` of a policy on the point's pick set: the searches'
-    selection seed (``train.eval_seed``, apart from the evaluation's sites) with
-    ``sweep.pick_sims`` x ``sweep.pick_ticks``; lower is better."""
-    seed = compose_config(["agent=search"]).train.eval_seed
-    n, ticks = cfg.sweep.pick_sims, cfg.sweep.pick_ticks
-    res = (cache or EvalCache(None)).evaluate(
-        pol, site, n, ticks, seed,
-        lambda: evaluate_policy(pol, site, n, ticks, seed, cfg.eval.device))
-    return res["failure_rate"], -res["trips_mean"]
+def check_point_outputs(sweep: SweepConfig) -> None:
+    """Before a point computes: its folder and the searches' cache can be written, and its
+    sweep folder holds no points of another parameter (``results/sweeps/<name>/`` is one
+    sweep; mixing two would plot p_c and N_V points on one axis)."""
+    from ..utils.paths import check_output
+
+    folder = Path(sweep.out) / sweep.name
+    check_output("sweep.out", folder, "dir")
+    check_output("sweep.search_dir", sweep.search_dir, "dir")
+    if folder.is_dir():
+        others = sorted({f.name.split("=", 1)[0] for f in folder.iterdir()
+                         if "=" in f.name and f.suffix in (".json", ".error")}
+                        - {sweep.param})
+        if others:
+            raise ConfigError(f"sweep.name={sweep.name!r} is invalid with sweep.param="
+                              f"{sweep.param}: {folder} holds a sweep of {others[0]}; "
+                              "give this sweep a name of its own")
 
 
-def class_start(run_cfg: Config, pol: Policy) -> SearchPolicy:
-    """What a search of ``run_cfg``'s class starts from when started from ``pol``: its action
-    table (table class), its thresholds (threshold class; the heuristic's for a policy
-    without any), a network cloned from it (mlp class)."""
-    a = run_cfg.agent
-    start = SearchPolicy(a.policy_class, a.hidden, a.depth, a.tc_bins)
-    if a.policy_class == "table":
-        start.charge.copy_(pol(cell_centres(a.tc_bins).to(_device(pol))).long().cpu())
-    elif a.policy_class == "threshold":
-        start.theta.copy_(threshold_start(pol))
-    else:
-        start.theta.copy_(clone_policy(pol.cpu(), start.sizes, run_cfg.seed, run_cfg.site))
-    return start
+def point_path(sweep: SweepConfig) -> Path:
+    v = point_value(sweep.param, sweep.value)
+    return Path(sweep.out) / sweep.name / f"{sweep.param}={v}.json"
 
 
-def _device(pol: Policy):
-    for t in (*pol.buffers(), *pol.parameters()):
-        return t.device
-    return "cpu"
+class Clock:
+    """The wall time of a point's phases (``wall_s``)."""
+
+    def __init__(self) -> None:
+        self.start = time.perf_counter()
+        self.phase_s: dict[str, float] = {}
+
+    @contextmanager
+    def phase(self, name: str):
+        t = time.perf_counter()
+        yield
+        self.phase_s[name] = time.perf_counter() - t
+
+    def total(self) -> dict[str, float]:
+        return {**self.phase_s, "total": time.perf_counter() - self.start}
 
 
-def search_start(cfg: Config, run_cfg: Config, policies: dict[str, Policy],
-                 trained: dict[str, Path] | None = None) -> str:
-    """The ``agent.init`` of a point's search: of the rule, the heuristic and the
-    ``partial``-state policies of the point, the one whose start of the search (what its
-    class can represent of it) does best on the point's pick set, as a baseline's name or a
-    saved policy's path (``trained``: the policy files of the point's own earlier searches,
-    which are not under ``table.policies_dir``)."""
-    best: tuple[tuple[float, float], str] | None = None
-    for name, pol in policies.items():
-        if pol.encoding != "partial":
-            continue
-        key = on_pick_set(cfg, run_cfg.site, class_start(run_cfg, pol))
-        if best is None or key < best[0]:
-            best = (key, name)
-    if best is None:
-        return run_cfg.agent.init
-    spec = AGENTS.get(best[1])
-    if spec is not None and not spec.trainable:
-        return best[1]
-    if trained and best[1] in trained:
-        return str(trained[best[1]])
-    return str(saved_policy_path(cfg.table.policies_dir, best[1], cfg.table.follow_symlinks))
+def run_point(p: PointSettings) -> list[dict[str, Any]] | None:
+    """Evaluate every row at this job's point; returns the rows (None if already done): plan
+    the candidates, train the point's own, pick on the pick set, evaluate, aggregate."""
+    check_point_outputs(p.sweep)
+    path = point_path(p.sweep)
+    keys = (p.sweep, p.table, p.eval, p.site, p.searches, p.specialists, p.planner)
+    key = point_key(*keys)
+    if up_to_date(path, key):
+        return None
+    twin = twin_key(*keys)
+    reused = reuse_twin(p, path, twin, key)
+    if reused is not None:
+        return reused
+    clock, cache, pool = Clock(), eval_cache(p.sweep), Pool()
+    candidates = plan_candidates(p)
+    load_saved(p, candidates, pool)
+    with clock.phase("searches"):
+        train_searches(p, candidates, pool)
+    with clock.phase("specialists"):
+        train_specialists(p, candidates, pool)
+    with clock.phase("pick_set"):
+        pool.keys = {(n, s): on_pick_set(p, q, cache) for n, g in pool.policies.items()
+                     for s, q in g.items()}
+    with clock.phase("planners_pick_set"):
+        add_planners(p, pool, cache)
+    with clock.phase("distil"):
+        train_distilled(p, pool, cache)
+    best = best_of(pool.keys)
+    print(f"[sweep] {p.site.name}: best known is {best[0]}"
+          + (f" seed {best[1]}" if best[1] is not None else "")
+          + f" ({-pool.keys[best][1]:.1f} trips on the pick set)", flush=True)
+    with clock.phase("evaluation"):
+        results = {(n, s): evaluated(cache, q, p.site, p.eval, n if s is None else f"{n}_seed{s}")
+                   for n, g in pool.policies.items() for s, q in g.items()}
+    with clock.phase("improvement"):
+        improved = one_step(p, pool, results, results.get(("rule", None)), cache)
+        if cache.folder is not None:
+            print(f"[sweep] {p.site.name}: evaluation cache {cache.hits} hit(s), "
+                  f"{cache.misses} computed ({cache.folder})", flush=True)
+    rows = aggregate(p, pool, results, improved, best)
+    wall_s = clock.total()
+    write_point(p, path, rows, {"key": key, "twin_key": twin}, pool, best, wall_s)
+    say_rows(p.site.name, rows, wall_s)
+    return rows
 
 
-def point_training(cfg: Config, run_cfg: Config, label: str) -> tuple[Policy, dict[str, Any]]:
-    """A policy trained on the point's site with ``run_cfg`` (a search or a specialist),
-    reused when its settings (and start) match, and its summary."""
-    start: Any = policy_file_sha256(getattr(run_cfg.agent, "init", None))
-    teacher = policy_file_sha256(getattr(getattr(run_cfg.agent, "expert", None), "base", None))
-    if teacher is not None:  # a teacher over a saved policy: its content, not just its path
-        start = [start, teacher]
-    out = Path(cfg.sweep.search_dir) / label / digest([result_fingerprint(run_cfg), start])
-    run_cfg.train.out_dir = str(out)
-    run_cfg.train.overwrite = True  # the sweep's own folder: a policy there is a killed run's
-    if not reusable(out, run_cfg):
-        print(f"[sweep] {label}: training -> {out}", flush=True)
-        Trainer(run_cfg, out / "run").run()
-    else:
-        print(f"[sweep] {label}: reusing {out}", flush=True)
-    return load_policy_file(out), read_json(out / "train_summary.json")
+def up_to_date(path: Path, key: str) -> bool:
+    """Whether the point's file holds the rows of this very key (else it is recomputed)."""
+    if not path.exists():
+        return False
+    try:
+        old = read_json(path).get("key")
+    except ValueError:
+        old = None
+    if old == key:
+        print(f"[sweep] {path} exists, skipping")
+        return True
+    print(f"[sweep] {path} was computed with other settings or policies: recomputing")
+    return False
 
 
-def specialist_config(cfg: Config, site: SiteConfig, recipe: str, seed: int,
-                      extra: list[str] | tuple[str, ...] = ()) -> Config:
-    """The training config of a specialist: a recipe of ``recipes`` (then ``extra``
-    overrides) on the point's own site (a recipe of a site distribution cannot be a
-    specialist)."""
-    run_cfg = compose_config([*cfg.recipes[recipe].overrides, *extra, f"seed={seed}",
-                              "train.progress=false", "train.tensorboard=false"])
-    if run_cfg.site.randomized:
-        raise ConfigError(f"sweep.specialists: the recipe {recipe!r} trains on a site "
-                          "distribution; a specialist trains on the point's own site")
-    run_cfg.site = site
-    return run_cfg
+def train_searches(p: PointSettings, candidates: list[Candidate], pool: Pool) -> None:
+    """The point's searches, each started (``sweep.search_seeded``, unless its overrides set
+    ``agent.init``) from the best start of its class among the rows loaded so far."""
+    trained: dict[str, Path] = {}  # the point's own searches, possible starts of the next
+    for c in (c for c in candidates if c.kind == "search"):
+        spec = c.specs[None]
+        if p.sweep.search_seeded and not any(o.split("=", 1)[0].lstrip("+~") == "agent.init"
+                                             for o in p.sweep.searches[c.name]):
+            starts = {n: next(iter(g.values())) for n, g in pool.policies.items()}
+            init = search_start(p, spec, {n: getattr(q, "policy", q)
+                                          for n, q in starts.items()}, trained)
+            spec = replace(spec, agent=replace(spec.agent, init=init))
+            print(f"[sweep] {p.site.name} {c.name}: starts from {init}", flush=True)
+        pol, pool.summaries[c.name], ran = point_training(p, spec, f"{p.site.name}/{c.name}")
+        pool.summaries[c.name]["init"] = spec.agent.init
+        pool.policies[c.name] = {None: pol}
+        trained[c.name] = pool.files[(c.name, None)] = Path(ran.train.out_dir) / POLICY_FILE
 
 
-def specialist_seeds(cfg: Config, label: str) -> list[int]:
-    s = cfg.sweep
-    n = max(s.more_seeds, s.specialist_seeds) if label in s.more_seeds_at else s.specialist_seeds
-    return [cfg.seed + k for k in range(n)]
+def train_specialists(p: PointSettings, candidates: list[Candidate], pool: Pool) -> None:
+    """The point's specialists, every seed (the distilled row waits for its teacher)."""
+    for c in (c for c in candidates if c.kind == "specialist" and c.name != DISTILLED):
+        pool.policies[c.name] = {}
+        for seed, spec in c.specs.items():
+            pol, summ, ran = point_training(p, spec, f"{p.site.name}/{c.name}/seed{seed}")
+            pool.policies[c.name][seed] = guard(p, _named(pol, c.name))
+            pool.summaries[f"{c.name}_seed{seed}"] = summ
+            pool.files[(c.name, seed)] = Path(ran.train.out_dir) / POLICY_FILE
 
 
-def point_key(cfg: Config, site: SiteConfig, search_cfgs: dict[str, Config],
-              specialist_cfgs: dict[str, dict[int, Config]]) -> str:
-    """Everything a point's result depends on, hashed (the sweep cache's key)."""
-    e, s = cfg.eval, cfg.sweep
-    parts: dict[str, Any] = {
-        "site": site, "eval": {"n_sims": e.n_sims, "ticks": e.ticks, "seed": e.seed},
-        "policies": [policy_identity(cfg, n) for n in s.policies]
-        + [str(p) + ":" + file_sha256(p)[:16] for n in s.policies
-           for p in seed_paths(cfg, n).values()],
-        "searches": {k: result_fingerprint(v) for k, v in search_cfgs.items()},
-        "specialists": {row: {seed: result_fingerprint(c) for seed, c in runs.items()}
-                        for row, runs in specialist_cfgs.items()},
-        "guard": s.guard, "seeds": "every seed of the learned policies",
-        "search_seeded": s.search_seeded, "pick": [s.pick_sims, s.pick_ticks],
-        "planner": without_neutral(planner_config(cfg)) if s.planner else None,
-        "planner_search": s.planner and s.planner_search,
-        "distil": None if not (s.specialist and s.distil) else
-        "the planner over planner_search's base, or over a row better than every planner; "
-        "the student reads its base's state",
-        "improve": [list(s.improve), s.improve_sims],
-        "best_known": "best of every row on the pick set (failures, then trips)"}
-    return digest(parts)
+def add_planners(p: PointSettings, pool: Pool, cache: EvalCache) -> None:
+    """The planner over the heuristic (row ``planner``) and over the point's best search
+    (row ``planner_search``, :func:`search_base`), with their pick-set keys."""
+    if not p.sweep.planner:
+        return
+    pool.policies[PLANNER] = {None: make_planner(p.planner, HeuristicPolicy())}
+    pool.keys[(PLANNER, None)] = on_pick_set(p, pool.policies[PLANNER][None], cache)
+    pool.planner_bases["heuristic"] = PLANNER
+    base = search_base(p, pool)
+    if base is not None:
+        pool.planner_bases[base] = PLANNER_SEARCH
+        pool.policies[PLANNER_SEARCH] = {None: make_planner(p.planner,
+                                                            pool.policies[base][None])}
+        pool.keys[(PLANNER_SEARCH, None)] = on_pick_set(p, pool.policies[PLANNER_SEARCH][None],
+                                                        cache)
+        print(f"[sweep] {p.site.name} {PLANNER_SEARCH}: the planner over {base}", flush=True)
 
 
-def point_trainings(cfg: Config, site: SiteConfig, label: str
-                    ) -> tuple[dict[str, Config], dict[str, dict[int, Config]]]:
-    """The training configs of a point on ``site``: its searches (``{row: config}``) and its
-    specialists (``{row: {seed: config}}``, the seeds of the point ``label``), the distilled
-    planner's (``sweep.distil``, row ``specialist_distilled``) among them with its recipe's
-    teacher: the point sets the teacher's base once its searches are known
-    (:func:`distil_teacher`)."""
-    searches = ({k: search_config(cfg, site, o) for k, o in cfg.sweep.searches.items()}
-                if cfg.sweep.search else {})
-    recipes = dict(cfg.sweep.specialists) if cfg.sweep.specialist else {}
-    if cfg.sweep.specialist and cfg.sweep.distil is not None:
-        recipes[DISTILLED] = cfg.sweep.distil
-    specialists = {row: {seed: specialist_config(cfg, site, recipe, seed)
-                         for seed in specialist_seeds(cfg, label)}
-                   for row, recipe in recipes.items()}
-    return searches, specialists
+def train_distilled(p: PointSettings, pool: Pool, cache: EvalCache) -> None:
+    """Row ``specialist_distilled``: the point's best planner (:func:`distil_base`) distilled
+    on its site, every seed, the student reading its teacher's base's state."""
+    if DISTILLED not in p.specialists:
+        return
+    base = distil_base(pool.keys, pool.planner_bases)
+    teacher = distil_teacher(p.planner, base, pool.files)
+    recipe_state = next(iter(p.specialists[DISTILLED].values())).state.name
+    state = distil_state(recipe_state, pool.policies, base)
+    pool.policies[DISTILLED] = {}
+    for seed, spec in p.specialists[DISTILLED].items():
+        if state is not None:
+            if state not in p.distil_states:
+                raise ConfigError(f"sweep.distil={p.sweep.distil!r} cannot read the state "
+                                  f"{state!r} of its teacher's base")
+            spec = p.distil_states[state][seed]
+        spec = replace(spec, agent=replace(spec.agent, expert=teacher))
+        pol, summ, _ = point_training(p, spec, f"{p.site.name}/{DISTILLED}/seed{seed}")
+        pool.policies[DISTILLED][seed] = guard(p, _named(pol, DISTILLED))
+        pool.summaries[f"{DISTILLED}_seed{seed}"] = {**summ, "teacher_base": teacher.base,
+                                                     "state": spec.state.name}
+        pool.keys[(DISTILLED, seed)] = on_pick_set(p, pool.policies[DISTILLED][seed], cache)
+    print(f"[sweep] {p.site.name} {DISTILLED}: the planner over {teacher.base} distilled "
+          f"onto the {spec.state.name} state", flush=True)
 
 
-def twin_key(cfg: Config, site: SiteConfig) -> str:
-    """The point's key with the site's name left out: two sweeps that reach the same site
-    (the default site is ``p_c`` 0.8, ``T_C`` 30 and ``N_V`` 3) compute the same rows."""
-    neutral = replace(site, name="sweep point")
-    return point_key(cfg, neutral, *point_trainings(cfg, neutral, site.name))
+def aggregate(p: PointSettings, pool: Pool, results: dict[Any, dict[str, Any]],
+              improved: dict[str, dict[str, Any]], best: tuple[str, int | None]
+              ) -> list[dict[str, Any]]:
+    """The point's rows (:class:`~fleet_torchrl.experiments.rows.Row`), ``best_known`` last,
+    each with its share of ``best_known``'s gain over the rule."""
+    rule = results.get(("rule", None))
+    rows = [Row.of(name, {s: results[(name, s)] for s in g}, rule).improved(
+        improved.get(name, {})) for name, g in pool.policies.items()]
+    top = Row.of(BEST_KNOWN, {None: results[best]}, rule)
+    top.seeds = [] if best[1] is None else [best[1]]
+    for r in (*rows, top):  # share of the achievable gain: this row's gain over best_known's
+        ok = top.gain_pct is not None and r.gain_pct is not None and top.gain_pct > 0
+        r.share_of_best_known_pct = 100.0 * r.gain_pct / top.gain_pct if ok else None
+    param, value = p.sweep.param, point_value(p.sweep.param, p.sweep.value)
+    return [*(r.sweep_dict(param, value) for r in rows),
+            top.sweep_dict(param, value, best_known=True)]
 
 
-def reuse_twin(cfg: Config, path: Path, twin: str, key: str, site: SiteConfig
-               ) -> list[dict[str, Any]] | None:
+def write_point(p: PointSettings, path: Path, rows: list[dict[str, Any]], keys: dict[str, str],
+                pool: Pool, best: tuple[str, int | None], wall_s: dict[str, float]) -> None:
+    """The point's file (atomically), its ``.error`` of an earlier failure removed."""
+    write_json(path, {"rows": rows, "site": p.site, **keys,
+                      "wall_s": {k: round(v, 1) for k, v in wall_s.items()},
+                      "best_known": {"from": best[0], "seed": best[1], "pick_set": {
+                          (n if s is None else f"{n}_seed{s}"):
+                          {"failure_rate": k[0], "trips_mean": -k[1]}
+                          for (n, s), k in pool.keys.items()}},
+                      "guard": p.sweep.guard,
+                      "trainings": {n: {**{k: v[k] for k in ("run_dir", "wall_s", "best")},
+                                        **{k: v[k] for k in ("init", "teacher_base", "state")
+                                           if k in v}}
+                                    for n, v in pool.summaries.items()},
+                      "meta": p.meta})
+    err = path.with_suffix(".error")
+    if err.exists():
+        err.unlink()
+
+
+def say_rows(label: str, rows: list[dict[str, Any]], wall_s: dict[str, float]) -> None:
+    print(f"[sweep] {label}: " + ", ".join(f"{k} {v:.0f} s" for k, v in wall_s.items()),
+          flush=True)
+    for r in rows:
+        gain = f", gain {r['gain_pct']:+.2f} %" if r["gain_pct"] is not None else ""
+        share = (f", {r['share_of_best_known_pct']:.0f} % of the best known"
+                 if r["share_of_best_known_pct"] is not None else "")
+        seeds = f" (seeds {r['seeds']})" if len(r["seeds"]) > 1 else ""
+        print(f"[sweep] {label} {r['policy']}: {r['trips_mean']:.1f} trips{gain}{share}{seeds}")
+
+
+def reuse_twin(p: PointSettings, path: Path, twin: str, key: str) -> list[dict[str, Any]] | None:
     """The rows of another sweep's point on the same site with the same settings (its
     ``twin_key``), written as this point's (``reused_from`` names the file); None if there
     is none."""
-    param, value = cfg.sweep.param, point_value(cfg.sweep.param, cfg.sweep.value)
-    for other in sorted(Path(cfg.sweep.out).glob("*/*=*.json")):
+    param, value = p.sweep.param, point_value(p.sweep.param, p.sweep.value)
+    for other in sorted(Path(p.sweep.out).glob("*/*=*.json")):
         if other.resolve() == path.resolve():
             continue
         try:
@@ -305,298 +373,28 @@ def reuse_twin(cfg: Config, path: Path, twin: str, key: str, site: SiteConfig
         if data.get("twin_key") != twin or "reused_from" in data:
             continue
         rows = [{**r, "param": param, "value": value} for r in data["rows"]]
-        write_json(path, {**data, "rows": rows, "site": site, "key": key,
+        write_json(path, {**data, "rows": rows, "site": p.site, "key": key,
                           "reused_from": str(other)})
-        print(f"[sweep] {site.name}: the same site and settings as {other}: its rows reused",
+        print(f"[sweep] {p.site.name}: the same site and settings as {other}: its rows reused",
               flush=True)
         return rows
     return None
 
 
-def point_value(param: str, value: float) -> float | int:
-    """The point's value as the site field takes it (validated: an integer parameter's value
-    is integral, never rounded here)."""
-    return int(value) if param in ("t_c", "n_vehicles") else float(value)
-
-
-def check_point_outputs(cfg: Config) -> None:
-    """Before a point computes: its folder and the searches' cache can be written, and its
-    sweep folder holds no points of another parameter (``results/sweeps/<name>/`` is one
-    sweep; mixing two would plot p_c and N_V points on one axis)."""
-    from ..utils.paths import check_output
-
-    folder = Path(cfg.sweep.out) / cfg.sweep.name
-    check_output("sweep.out", folder, "dir")
-    check_output("sweep.search_dir", cfg.sweep.search_dir, "dir")
-    if folder.is_dir():
-        others = sorted({f.name.split("=", 1)[0] for f in folder.iterdir()
-                         if "=" in f.name and f.suffix in (".json", ".error")}
-                        - {cfg.sweep.param})
-        if others:
-            raise ConfigError(f"sweep.name={cfg.sweep.name!r} is invalid with sweep.param="
-                              f"{cfg.sweep.param}: {folder} holds a sweep of {others[0]}; "
-                              "give this sweep a name of its own")
-
-
-def point_path(cfg: Config) -> Path:
-    v = point_value(cfg.sweep.param, cfg.sweep.value)
-    return Path(cfg.sweep.out) / cfg.sweep.name / f"{cfg.sweep.param}={v}.json"
-
-
-def best_of(keys: dict[Any, tuple[float, float]]) -> Any:
-    """The name with the best pick-set key (fewer failures, then more trips); on a tie the
-    first in order (policies before searches before planners)."""
-    return min(keys, key=lambda n: keys[n])
-
-
-def seed_paths(cfg: Config, name: str) -> dict[int, Path]:
-    """Every training seed's policy file of a learned policy of ``sweep.policies`` (``make
-    table``'s ``<name>/seed<s>/``), or its one policy (``make train``'s ``<name>/``) as seed 0;
-    empty for a baseline."""
-    spec = AGENTS.get(name)
-    if spec is not None and not spec.trainable:
-        return {}
-    folder = Path(cfg.table.policies_dir) / name
-    seeds = {int(p.parent.name[4:]): inside_policies(cfg, p)
-             for p in inside_policies(cfg, folder).glob(f"seed*/{POLICY_FILE}")
-             if p.parent.name[4:].isdigit()}
-    if not seeds:
-        seeds = {0: saved_policy_path(cfg.table.policies_dir, name, cfg.table.follow_symlinks)}
-    return dict(sorted(seeds.items()))
-
-
-def is_learned(name: str) -> bool:
-    """A learned row: a default-site learner or a specialist (not a baseline, a search, a
-    planner or best_known)."""
-    return (name not in AGENTS and not name.startswith(("search", PLANNER, BEST_KNOWN))) or \
-        name.startswith("specialist")
-
-
-def seed_row(name: str, per_seed: dict[int, dict[str, Any]], rule: dict[str, Any]
-             ) -> dict[str, Any]:
-    """A row of several training seeds: every figure the mean over the seeds, the gain with
-    its 95 % interval across seeds and each seed's gain, the worst seed's failure rate."""
-    gains = [gain_over(res, rule)["gain_pct"] for res in per_seed.values()]
-    gi = seed_interval(gains)
-    n = len(per_seed)
-    return {"policy": name, "seeds": list(per_seed), "gain_per_seed": gains,
-            **{k: sum(r[k] for r in per_seed.values()) / n
-               for k in ("trips_mean", "trips_std", "queue_mean", "failure_rate")},
-            "failure_rate_max": max(r["failure_rate"] for r in per_seed.values()),
-            "gain_pct": gi["mean"], "gain_ci95": None if n == 1 else gi["ci95"]}
-
-
-def run_point(cfg: Config) -> list[dict[str, Any]] | None:
-    """Evaluate every row at this job's point; returns the rows (None if already done)."""
-    check_point_outputs(cfg)
-    path = point_path(cfg)
-    param = cfg.sweep.param
-    value = point_value(param, cfg.sweep.value)
-    label = f"{param}={value}"
-    if cfg.site.randomized:
-        raise ConfigError(f"site={cfg.site.name!r} is a site distribution: a sweep varies "
-                          f"{param} of one site; run it on a single site (e.g. site=default)")
-    site = replace(cfg.site, **{param: value}, name=label).validate()
-    search_cfgs, specialist_cfgs = point_trainings(cfg, site, label)
-    key = point_key(cfg, site, search_cfgs, specialist_cfgs)
-    if path.exists():
-        try:
-            old = read_json(path).get("key")
-        except ValueError:
-            old = None
-        if old == key:
-            print(f"[sweep] {path} exists, skipping")
-            return None
-        print(f"[sweep] {path} was computed with other settings or policies: recomputing")
-    twin = twin_key(cfg, site)
-    reused = reuse_twin(cfg, path, twin, key, site)
-    if reused is not None:
-        return reused
-    t_start = time.perf_counter()
-    phase_s: dict[str, float] = {}
-    e = cfg.eval
-    cache = eval_cache(cfg)
-    guard = GuardedPolicy if cfg.sweep.guard else (lambda p: p)
-    # every row as {seed: policy}; a baseline, a search or a planner has one (seed None)
-    groups: dict[str, dict[int | None, Policy]] = {}
-    baselines = [n for n in cfg.sweep.policies if not seed_paths(cfg, n)]
-    for name, pol in load_policies(cfg, baselines).items():
-        groups[name] = {None: pol}
-    for name in cfg.sweep.policies:
-        if name not in groups:
-            groups[name] = {s: guard(_named(load_policy_file(p, e.device), name))
-                            for s, p in seed_paths(cfg, name).items()}
-    summaries: dict[str, Any] = {}
-    trained: dict[str, Path] = {}  # the point's own searches, possible starts of the next
-    files: dict[tuple[str, int | None], Path] = {  # every row's policy file (a teacher's base)
-        (n, s): p for n in cfg.sweep.policies for s, p in seed_paths(cfg, n).items()}
-    t = time.perf_counter()
-    for name, run_cfg in search_cfgs.items():
-        if cfg.sweep.search_seeded and not any(o.split("=", 1)[0].lstrip("+~") == "agent.init"
-                                               for o in cfg.sweep.searches[name]):
-            starts = {n: next(iter(g.values())) for n, g in groups.items()}
-            run_cfg.agent.init = search_start(cfg, run_cfg, {
-                n: getattr(p, "policy", p) for n, p in starts.items()}, trained)
-            print(f"[sweep] {label} {name}: starts from {run_cfg.agent.init}", flush=True)
-        pol, summaries[name] = point_training(cfg, run_cfg, f"{label}/{name}")
-        summaries[name]["init"] = run_cfg.agent.init
-        groups[name] = {None: pol}
-        trained[name] = Path(run_cfg.train.out_dir) / POLICY_FILE
-        files[(name, None)] = trained[name]
-    phase_s["searches"] = time.perf_counter() - t
-    t = time.perf_counter()
-    for row, runs in specialist_cfgs.items():
-        if row == DISTILLED:  # trained once its teacher is known (below)
-            continue
-        groups[row] = {}
-        for seed, run_cfg in runs.items():
-            pol, summ = point_training(cfg, run_cfg, f"{label}/{row}/seed{seed}")
-            groups[row][seed] = guard(_named(pol, row))
-            summaries[f"{row}_seed{seed}"] = summ
-            files[(row, seed)] = Path(run_cfg.train.out_dir) / POLICY_FILE
-    phase_s["specialists"] = time.perf_counter() - t
-    t = time.perf_counter()
-    keys = {(n, s): on_pick_set(cfg, site, p, cache) for n, g in groups.items()
-            for s, p in g.items()}
-    phase_s["pick_set"] = time.perf_counter() - t
-    t = time.perf_counter()
-    planner_bases: dict[str, str] = {}  # base row -> the planner row over it
-    if cfg.sweep.planner:
-        groups[PLANNER] = {None: make_planner(cfg, HeuristicPolicy())}
-        keys[(PLANNER, None)] = on_pick_set(cfg, site, groups[PLANNER][None], cache)
-        planner_bases["heuristic"] = PLANNER
-        base = search_base(cfg, groups, keys)
-        if base is not None:
-            planner_bases[base] = PLANNER_SEARCH
-            groups[PLANNER_SEARCH] = {None: make_planner(cfg, groups[base][None])}
-            keys[(PLANNER_SEARCH, None)] = on_pick_set(cfg, site,
-                                                       groups[PLANNER_SEARCH][None], cache)
-            print(f"[sweep] {label} {PLANNER_SEARCH}: the planner over {base}", flush=True)
-    phase_s["planners_pick_set"] = time.perf_counter() - t
-    t = time.perf_counter()
-    if DISTILLED in specialist_cfgs:
-        base = distil_base(cfg, keys, planner_bases)
-        teacher = distil_teacher(cfg, base, files)
-        state = distil_state(cfg, groups, base)
-        groups[DISTILLED] = {}
-        for seed, run_cfg in specialist_cfgs[DISTILLED].items():
-            if state is not None:
-                run_cfg = specialist_config(cfg, site, cfg.sweep.distil, seed, [f"state={state}"])
-            run_cfg.agent.expert = teacher
-            pol, summ = point_training(cfg, run_cfg, f"{label}/{DISTILLED}/seed{seed}")
-            groups[DISTILLED][seed] = guard(_named(pol, DISTILLED))
-            summaries[f"{DISTILLED}_seed{seed}"] = {**summ, "teacher_base": teacher.base,
-                                                    "state": run_cfg.state.name}
-            keys[(DISTILLED, seed)] = on_pick_set(cfg, site, groups[DISTILLED][seed], cache)
-        print(f"[sweep] {label} {DISTILLED}: the planner over {teacher.base} distilled "
-              f"onto the {run_cfg.state.name} state",
-              flush=True)
-    phase_s["distil"] = time.perf_counter() - t
-    best = best_of(keys)
-    print(f"[sweep] {label}: best known is {best[0]}"
-          + (f" seed {best[1]}" if best[1] is not None else "")
-          + f" ({-keys[best][1]:.1f} trips on the pick set)", flush=True)
-    t = time.perf_counter()
-    results = {(n, s): evaluated(cache, p, site, e, n if s is None else f"{n}_seed{s}")
-               for n, g in groups.items() for s, p in g.items()}
-    phase_s["evaluation"] = time.perf_counter() - t
-    t = time.perf_counter()
-    rule = results[("rule", None)] if ("rule", None) in results else None
-    improved = one_step(cfg, site, groups, keys, results, rule, planner_bases, cache)
-    if cache.folder is not None:
-        print(f"[sweep] {label}: evaluation cache {cache.hits} hit(s), {cache.misses} "
-              f"computed ({cache.folder})", flush=True)
-    phase_s["improvement"] = time.perf_counter() - t
-    phase_s["total"] = time.perf_counter() - t_start
-    rows = []
-    for name, g in groups.items():
-        if list(g) == [None]:
-            res = results[(name, None)]
-            gn = gain_over(res, rule) if rule is not None else {"gain_pct": None,
-                                                                "gain_ci95": None}
-            rows.append({"policy": name, "seeds": [], "gain_per_seed": [],
-                         **{k: res[k] for k in ("trips_mean", "trips_std", "queue_mean",
-                                                "failure_rate")},
-                         "failure_rate_max": res["failure_rate"],
-                         "gain_pct": gn["gain_pct"], "gain_ci95": gn["gain_ci95"]})
-        else:
-            rows.append(seed_row(name, {s: results[(name, s)] for s in g}, rule))
-    for r in rows:
-        r.update(improved.get(r["policy"], dict.fromkeys(IMPROVEMENT_FIELDS)))
-    top_res = results[best]
-    g_top = gain_over(top_res, rule) if rule is not None else {"gain_pct": None,
-                                                              "gain_ci95": None}
-    rows.append({"policy": BEST_KNOWN, "seeds": [] if best[1] is None else [best[1]],
-                 "gain_per_seed": [], **dict.fromkeys(IMPROVEMENT_FIELDS),
-                 **{k: top_res[k] for k in ("trips_mean", "trips_std", "queue_mean",
-                                            "failure_rate")},
-                 "failure_rate_max": top_res["failure_rate"],
-                 "gain_pct": g_top["gain_pct"], "gain_ci95": g_top["gain_ci95"]})
-    top = rows[-1]["gain_pct"]
-    for r in rows:  # share of the achievable gain: this row's gain over best_known's
-        r.update(param=param, value=value)
-        ok = top is not None and r["gain_pct"] is not None and top > 0
-        r["share_of_best_known_pct"] = 100.0 * r["gain_pct"] / top if ok else None
-    write_json(path, {"rows": rows, "site": site, "key": key, "twin_key": twin,
-                      "wall_s": {k: round(v, 1) for k, v in phase_s.items()},
-                      "best_known": {"from": best[0], "seed": best[1], "pick_set": {
-                          (n if s is None else f"{n}_seed{s}"):
-                          {"failure_rate": k[0], "trips_mean": -k[1]}
-                          for (n, s), k in keys.items()}},
-                      "guard": cfg.sweep.guard,
-                      "trainings": {n: {**{k: v[k] for k in ("run_dir", "wall_s", "best")},
-                                        **{k: v[k] for k in ("init", "teacher_base", "state")
-                                           if k in v}}
-                                    for n, v in summaries.items()},
-                      "meta": run_info(cfg, seed=e.seed)})
-    err = path.with_suffix(".error")
-    if err.exists():
-        err.unlink()
-    print(f"[sweep] {label}: " + ", ".join(f"{k} {v:.0f} s" for k, v in phase_s.items()),
-          flush=True)
-    for r in rows:
-        gain = f", gain {r['gain_pct']:+.2f} %" if r["gain_pct"] is not None else ""
-        share = (f", {r['share_of_best_known_pct']:.0f} % of the best known"
-                 if r["share_of_best_known_pct"] is not None else "")
-        seeds = f" (seeds {r['seeds']})" if len(r["seeds"]) > 1 else ""
-        print(f"[sweep] {label} {r['policy']}: {r['trips_mean']:.1f} trips{gain}{share}{seeds}")
-    return rows
-
-
-def search_base(cfg: Config, groups: dict[str, dict[int | None, Policy]],
-                keys: dict[tuple[str, int | None], tuple[float, float]]) -> str | None:
-    """The base of row ``planner_search`` (``sweep.planner_search``): the point's best search
-    on the pick set, if it decides inside the kernel (rollouts as cheap as the heuristic's)
-    and is better there than the heuristic (the ``planner`` row's base); else None."""
-    if not (cfg.sweep.planner and cfg.sweep.planner_search):
-        return None
-    pool = {k: v for k, v in keys.items() if k[0].startswith("search") and k[1] is None
-            and groups[k[0]][None].kernel_policy() is not None}
-    if not pool:
-        return None
-    best = best_of(pool)
-    heuristic = keys.get(("heuristic", None))
-    if heuristic is not None and not pool[best] < heuristic:
-        return None
-    return best[0]
-
-
-def one_step(cfg: Config, site: SiteConfig, groups: dict[str, dict[int | None, Policy]],
-             keys: dict[tuple[str, int | None], tuple[float, float]],
-             results: dict[tuple[str, int | None], dict[str, Any]],
-             rule: dict[str, Any] | None, planner_bases: dict[str, str],
-             cache: EvalCache | None = None) -> dict[str, dict[str, Any]]:
+def one_step(p: PointSettings, pool: Pool, results: dict[Any, dict[str, Any]],
+             rule: dict[str, Any] | None, cache: EvalCache | None = None
+             ) -> dict[str, dict[str, Any]]:
     """What one step of policy improvement adds to the policies of ``sweep.improve`` (the
     best learned row's best seed on the pick set, ...): the planner over it on the first
     ``sweep.improve_sims`` sites of the evaluation, paired with its own records, in points
     of gain over the rule (:func:`~fleet_torchrl.experiments.improvement.improvement`). A
-    base with a planner row of its own (``planner_bases``: base row -> planner row; the
+    base with a planner row of its own (``pool.planner_bases``: base row -> planner row; the
     heuristic's ``planner``, the search's ``planner_search``) takes that row, paired on
     every site. ``{row: improvement_*}``."""
     out: dict[str, dict[str, Any]] = {}
-    if not cfg.sweep.planner or rule is None:
+    if not p.sweep.planner or rule is None:
         return out
-    for name, planner in planner_bases.items():
+    for name, planner in pool.planner_bases.items():
         if (name, None) not in results:
             continue
         trips = {n: results[(n, None)]["records"]["trips"] for n in (planner, name)}
@@ -604,87 +402,42 @@ def one_step(cfg: Config, site: SiteConfig, groups: dict[str, dict[int | None, P
         n = len(trips[planner])
         out[name] = {"improvement_pct": pct, "improvement_ci95": ci if n > 1 else None,
                      "improvement_sims": n, "improvement_seed": None}
-    if not cfg.sweep.improve_sims:
+    if not p.sweep.improve_sims:
         return out
-    for want in cfg.sweep.improve:
-        pool = {k: v for k, v in keys.items() if not k[0].startswith((PLANNER, BEST_KNOWN))}
-        if want == "best_learned":
-            pool = {k: v for k, v in pool.items() if is_learned(k[0])}
-        elif want != "best":
-            pool = {k: v for k, v in pool.items() if k[0] == want}
-        if not pool:
-            continue
-        name, seed = best_of(pool)
-        if name in out:
-            continue
-        pol, planner = groups[name][seed], planner_config(cfg)
-        parts = ["improvement", policy_fingerprint(pol), without_neutral(planner),
-                 site_identity(site),
-                 cfg.sweep.improve_sims, cfg.eval.ticks, cfg.eval.seed]
-        imp = (cache or EvalCache(None)).get_or_compute(parts, partial(
-            improvement, pol, results[(name, seed)], rule, site, cfg.sweep.improve_sims,
-            cfg.eval.ticks, cfg.eval.seed, planner, cfg.eval.device))
-        out[name] = {"improvement_pct": imp["improvement_pct"],
-                     "improvement_ci95": imp["improvement_ci95"],
-                     "improvement_sims": imp["sims"],
-                     "improvement_seed": seed}
-        print(f"[sweep] {site.name} {name}" + (f" seed {seed}" if seed is not None else "")
-              + f": one step of improvement {imp['improvement_pct']:+.2f} "
-              f"± {imp['improvement_ci95']:.2f} ({imp['sims']} sites)", flush=True)
+    for want in p.sweep.improve:
+        got = improve_best(p, pool, results, rule, want, out, cache)
+        if got is not None:
+            out[got[0]] = got[1]
     return out
 
 
-def distil_base(cfg: Config, keys: dict[tuple[str, int | None], tuple[float, float]],
-                planner_bases: dict[str, str]) -> tuple[str, int | None] | None:
-    """The base of the teacher of row ``specialist_distilled``, as ``(row, seed)``: the base
-    of the point's last planner row (``planner_search``'s search, else the heuristic), unless
-    another row (neither a planner row nor this row itself) beats every planner row on the
-    pick set: then the best such row (the planner over a policy better than every planner
-    we have is the better teacher; measured at ``T_C`` = 10, docs/TRAINING.md section 14).
-    None: no planner rows (the teacher is then the planner over the heuristic)."""
-    if not planner_bases:
+def improve_best(p: PointSettings, pool: Pool, results: dict[Any, dict[str, Any]],
+                 rule: dict[str, Any], want: str, done: dict[str, Any],
+                 cache: EvalCache | None) -> tuple[str, dict[str, Any]] | None:
+    """One step of improvement over the best row of ``want`` on the pick set (``best``,
+    ``best_learned`` or a row's name); None where there is none or it has its figures."""
+    cands = {k: v for k, v in pool.keys.items() if not k[0].startswith((PLANNER, BEST_KNOWN))}
+    if want == "best_learned":
+        cands = {k: v for k, v in cands.items() if is_learned(k[0])}
+    elif want != "best":
+        cands = {k: v for k, v in cands.items() if k[0] == want}
+    if not cands:
         return None
-    base = next(reversed(planner_bases))
-    rows = {PLANNER, PLANNER_SEARCH, *planner_bases.values()}
-    planners = {k: v for k, v in keys.items() if k[0] in rows}
-    others = {k: v for k, v in keys.items() if k[0] not in rows and k[0] != DISTILLED}
-    if others and planners and min(others.values()) < min(planners.values()):
-        return best_of(others)
-    return (base, None)
-
-
-def distil_teacher(cfg: Config, base: tuple[str, int | None] | None,
-                   files: dict[tuple[str, int | None], Path]) -> Any:
-    """The teacher of row ``specialist_distilled``: the sweep's planner settings over the
-    row ``base`` (:func:`distil_base`), by its policy file (the heuristic by name)."""
-    teacher = planner_config(cfg)
-    if base is None or base == ("heuristic", None):
-        teacher.base = "heuristic"
-    elif base in files:
-        teacher.base = str(files[base])
-    elif base[0] in AGENTS and not AGENTS[base[0]].trainable:
-        teacher.base = base[0]
-        if teacher.base not in BASELINE_BASES:
-            raise ConfigError(f"the distilled planner's base {base[0]!r} cannot be a "
-                              f"planner's base (allowed {', '.join(BASELINE_BASES)} or a "
-                              "policy file)")
-    else:
-        raise ConfigError(f"the distilled planner's base {base[0]!r} has no policy file")
-    return teacher
-
-
-def distil_state(cfg: Config, groups: dict[str, dict[int | None, Policy]],
-                 base: tuple[str, int | None] | None) -> str | None:
-    """The state the distilled student reads, where it differs from its recipe's: the
-    state its teacher's base reads (a student needs what its teacher's base decides on:
-    a DQN reading every node orders the vehicles in a way the ``partial`` state cannot
-    show), if the imitation learner accepts it; None keeps the recipe's."""
-    if base is None:
+    name, seed = best_of(cands)
+    if name in done:
         return None
-    enc = getattr(groups.get(base[0], {}).get(base[1]), "encoding", None)
-    recipe = compose_config(list(cfg.recipes[cfg.sweep.distil].overrides)).state.name
-    states = AGENTS["imitation"].states or ()
-    return enc if enc != recipe and enc in states else None
+    e, pol, planner = p.eval, pool.policies[name][seed], p.planner
+    parts = ["improvement", policy_fingerprint(pol), without_neutral(planner),
+             site_identity(p.site), p.sweep.improve_sims, e.ticks, e.seed]
+    imp = (cache or EvalCache(None)).get_or_compute(parts, partial(
+        improvement, pol, results[(name, seed)], rule, p.site, p.sweep.improve_sims,
+        e.ticks, e.seed, planner, e.device))
+    print(f"[sweep] {p.site.name} {name}" + (f" seed {seed}" if seed is not None else "")
+          + f": one step of improvement {imp['improvement_pct']:+.2f} "
+          f"± {imp['improvement_ci95']:.2f} ({imp['sims']} sites)", flush=True)
+    return name, {"improvement_pct": imp["improvement_pct"],
+                  "improvement_ci95": imp["improvement_ci95"],
+                  "improvement_sims": imp["sims"], "improvement_seed": seed}
 
 
 def evaluated(cache: EvalCache, pol: Policy, site: SiteConfig, e: Any, name: str
@@ -694,6 +447,8 @@ def evaluated(cache: EvalCache, pol: Policy, site: SiteConfig, e: Any, name: str
                           lambda: evaluate_with(pol, site, e, name=name), name=name)
 
 
-def _named(pol: Policy, name: str) -> Policy:
-    pol.name = name
-    return pol
+__all__ = ["BEST_KNOWN", "CACHE_VERSION", "DISTILLED", "IMPROVEMENT_FIELDS", "PLANNER",
+           "PLANNER_SEARCH", "POINT_FIELDS", "PointSettings", "best_of", "class_start",
+           "digest", "distil_base", "distil_state", "distil_teacher", "is_learned",
+           "point_path", "point_site", "point_value", "run_point", "search_base",
+           "search_start", "seed_paths", "specialist_seeds"]

@@ -21,9 +21,7 @@ def expected_points(name: str) -> list[str] | None:
     define (then no point is reported missing)."""
     import yaml
 
-    from ..config import CONF_DIR
-
-    path = CONF_DIR / "experiment" / f"sweep_{name}.yaml"
+    path = Path(__file__).resolve().parent.parent / "conf" / "experiment" / f"sweep_{name}.yaml"
     if not path.is_file():
         return None
     exp = yaml.safe_load(path.read_text())

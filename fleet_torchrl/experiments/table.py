@@ -24,29 +24,46 @@
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 from ..agents import POLICY_FILE
 from ..agents.registry import load_policy_file
-from ..config import Config, compose_config
-from ..evaluation import evaluate_with, gain_over, save_result, seed_interval
+from ..evaluation import evaluate_with, gain_over, save_result
+from ..evaluation.config import EvalConfig
 from ..sim import SiteConfig
 from ..store import load_policies, seed_dir, site_preset, site_suffix
 from ..training import CHECKPOINT, checkpoint_mismatch, result_fingerprint
+from ..training.config import TrainConfig
 from ..training.publish import holds_policy
+from ..training.spec import RunSpec
 from ..utils.checks import ConfigError
 from ..utils.plotting import plot_gain_boxplot, plot_learning_curves, save_figure
-from ..utils.runinfo import file_sha256, read_json, run_info, write_csv, write_json, write_text
+from ..utils.runinfo import file_sha256, read_json, write_csv, write_json, write_text
+from .config import Recipe, TableConfig
 from .improvement import improvement
+from .rows import TABLE_FIELDS, Candidate, Row
 
 BASELINES = ("rule", "heuristic")
-ROW_KEYS = ("policy", "objective", "trained_on", "seeds", "trips_mean", "trips_std", "queue_mean",
-            "failure_rate", "gain_pct", "gain_ci95", "gain_min", "gain_per_seed",
-            "gain_vs_heuristic_pct", "train_time_s", "improvement_pct", "improvement_ci95")
+ROW_KEYS = TABLE_FIELDS
+
+
+class TableRun(Protocol):
+    """What the table reads of the command's config: its own settings, the recipes, the
+    site it trains and evaluates on, the first training seed, the training device
+    (``train.device``) and the evaluation protocol."""
+
+    table: TableConfig
+    recipes: dict[str, Recipe]
+    site: SiteConfig
+    seed: int
+    train: TrainConfig
+    eval: EvalConfig
+
+
+Specs = dict[tuple[str, int], RunSpec]  # every training's run spec by (recipe, seed)
 
 
 def set_aside(run_dir: Path) -> Path:
@@ -60,32 +77,11 @@ def set_aside(run_dir: Path) -> Path:
     return run_dir.rename(stale)
 
 
-def training_seeds(cfg: Config) -> list[int]:
+def training_seeds(cfg: TableRun) -> list[int]:
     return [cfg.seed + k for k in range(cfg.table.seeds)]
 
 
-# groups a table-level override would set for nothing: each recipe sets its own
-_RECIPE_GROUPS = ("state", "mdp", "agent", "network")
-
-
-def check_forwardable(cfg: Config) -> None:
-    """Refuse table-level settings that cannot reach the trainings: the learner, state,
-    objective and network are each recipe's own (``conf/recipes``), so ``make table
-    ARGS="mdp.reward=throughput"`` would change nothing it says. The site is forwarded
-    (:func:`site_overrides`)."""
-    plain = compose_config([])
-    for group in _RECIPE_GROUPS:
-        mine, default = getattr(cfg, group), getattr(plain, group)
-        if mine != default:
-            diff = next((f"{group}.{k}={v!r}" for k, v in vars(mine).items()
-                         if getattr(default, k, object()) != v), group)
-            raise ConfigError(f"{diff} does not reach the table's trainings (each recipe sets "
-                              f"its own {group}): put it in a recipe (conf/recipes) or run "
-                              "make train")
-    site_overrides(cfg)
-
-
-def site_overrides(cfg: Config) -> list[str]:
+def site_overrides(cfg: TableRun) -> list[str]:
     """The table's site as overrides of its trainings: none for the default site, else the
     site preset and the fields that differ from it (``make table ARGS="site=five_vehicles"``
     trains and evaluates on that site). A site distribution that is not a packaged preset
@@ -107,18 +103,18 @@ def site_overrides(cfg: Config) -> list[str]:
     return out
 
 
-def _sets_site(cfg: Config, name: str) -> bool:
+def _sets_site(cfg: TableRun, name: str) -> bool:
     return cfg.recipes[name].site_override() is not None
 
 
-def trained_on(cfg: Config, name: str) -> str:
+def trained_on(cfg: TableRun, name: str) -> str:
     """Where recipe ``name`` trains: its own site overrides (``site=randomized``,
     ``site.t_c=10``), or ``this site`` when it trains on the table's. A row trained elsewhere
     (a base of the generalist's teacher) is evaluated off its site here, failures included."""
     return ", ".join(o.lstrip("+~") for o in cfg.recipes[name].site_overrides()) or "this site"
 
 
-def recipe_folder(cfg: Config, name: str) -> str:
+def recipe_folder(cfg: TableRun, name: str) -> str:
     """The folder a recipe's policies are published in: its name, plus the site's suffix
     when the table's site reaches it (a recipe with a site of its own, like the generalist,
     keeps its name), so a table on another site never replaces the default site's."""
@@ -127,12 +123,12 @@ def recipe_folder(cfg: Config, name: str) -> str:
     return name
 
 
-def recipe_seed_dir(cfg: Config, name: str, seed: int) -> Path:
+def recipe_seed_dir(cfg: TableRun, name: str, seed: int) -> Path:
     return seed_dir(cfg.table.policies_dir, recipe_folder(cfg, name), seed,
                     cfg.table.follow_symlinks)
 
 
-def run_overrides(name: str, seed: int, cfg: Config) -> list[str]:
+def run_overrides(name: str, seed: int, cfg: TableRun) -> list[str]:
     """The overrides of training run ``name`` with ``seed`` (its policy goes to its seed dir;
     the table's site is forwarded unless the recipe sets its own; a teacher's bases are
     other recipes' policies, :func:`teacher_bases`)."""
@@ -143,7 +139,7 @@ def run_overrides(name: str, seed: int, cfg: Config) -> list[str]:
             f"train.device={cfg.train.device}", f"seed={seed}"]
 
 
-def teacher_bases(cfg: Config, name: str) -> list[str]:
+def teacher_bases(cfg: TableRun, name: str) -> list[str]:
     """The override that gives recipe ``name``'s teacher the policies of its ``bases``
     recipes (each one's of the table's first training seed), none without bases."""
     bases = cfg.recipes[name].bases
@@ -158,7 +154,7 @@ def teacher_bases(cfg: Config, name: str) -> list[str]:
     return [f"agent.expert.bases=[{','.join(paths)}]"]
 
 
-def reusable(out_dir: Path, run_cfg: Config) -> bool:
+def reusable(out_dir: Path, spec: RunSpec) -> bool:
     """A saved policy is reused only with a summary that records the same training config and
     the hash of that policy file."""
     summary = out_dir / "train_summary.json"
@@ -170,7 +166,7 @@ def reusable(out_dir: Path, run_cfg: Config) -> bool:
         return False
     # the summary must belong to this configuration and to this very policy file (a killed
     # or concurrent run can leave a policy beside another run's summary)
-    return (rec.get("fingerprint") == result_fingerprint(run_cfg)
+    return (rec.get("fingerprint") == result_fingerprint(spec)
             and rec.get("policy_sha256") == file_sha256(out_dir / POLICY_FILE))
 
 
@@ -188,15 +184,15 @@ class TableJob:
         return f"train_{self.name}_seed{self.seed}"
 
 
-def plan_training(name: str, seed: int, cfg: Config, progress: bool = False
+def plan_training(name: str, seed: int, cfg: TableRun, spec: RunSpec, progress: bool = False
                   ) -> TableJob | None:
-    """The training job of ``name`` with ``seed``, or None when its saved policy can be
-    reused. Runs in the launching process (Hydra's compose is process-global); a stale or
-    unreadable checkpoint in the run folder is set aside here, a matching one resumed."""
+    """The training job of ``name`` with ``seed`` (``spec``: what :func:`run_overrides`
+    compose to), or None when its saved policy can be reused. Runs in the launching process;
+    a stale or unreadable checkpoint in the run folder is set aside here, a matching one
+    resumed."""
     overrides = run_overrides(name, seed, cfg)
-    run_cfg = compose_config(overrides)
-    out_dir = Path(run_cfg.train.out_dir)
-    if not cfg.table.retrain and reusable(out_dir, run_cfg):
+    out_dir = Path(spec.train.out_dir)
+    if not cfg.table.retrain and reusable(out_dir, spec):
         print(f"[table] reusing {out_dir / POLICY_FILE}", flush=True)
         return None
     # the table owns its seed folders: a policy of other settings there (a recipe changed,
@@ -210,7 +206,7 @@ def plan_training(name: str, seed: int, cfg: Config, progress: bool = False
     resume = (run_dir / CHECKPOINT).exists() and not cfg.table.retrain
     if resume:
         try:
-            diff = checkpoint_mismatch(run_dir / CHECKPOINT, run_cfg)
+            diff = checkpoint_mismatch(run_dir / CHECKPOINT, spec)
             why = f"a run of another configuration ({'; '.join(diff[:3])})" if diff else None
         except ValueError as e:
             why = f"an unreadable checkpoint ({e})"
@@ -230,7 +226,7 @@ def plan_training(name: str, seed: int, cfg: Config, progress: bool = False
     return job
 
 
-def check_outputs(cfg: Config) -> None:
+def check_outputs(cfg: TableRun) -> None:
     """Before any training: every folder the table writes can be written (a
     ``table.policies_dir`` that is a file would otherwise be found after the trainings)."""
     from ..utils.paths import check_output
@@ -244,20 +240,21 @@ def check_outputs(cfg: Config) -> None:
 WAVES = 2  # recipes whose teachers plan over other recipes' policies train after those
 
 
-def plan_jobs(cfg: Config, progress: bool = False, wave: int = 0) -> list[TableJob]:
+def plan_jobs(cfg: TableRun, specs: Specs, progress: bool = False, wave: int = 0
+              ) -> list[TableJob]:
     """The trainings the table needs, recipe by recipe and seed by seed (reused policies
-    left out); ``progress``: whether a job may show its progress bar (one job at a time).
-    Wave 0 holds the recipes without teacher bases, wave 1 the others: plan wave 1 once
-    wave 0 has run (its configs name wave 0's policy files, which must exist)."""
-    check_forwardable(cfg)
+    left out; ``specs``: each training's run spec); ``progress``: whether a job may show its
+    progress bar (one job at a time). Wave 0 holds the recipes without teacher bases, wave 1
+    the others: plan wave 1 once wave 0 has run (its fingerprints read wave 0's policy
+    files, which must exist)."""
     names = [n for n in cfg.table.training_names(cfg.recipes)
              if bool(cfg.recipes[n].bases) == bool(wave)]
-    jobs = [plan_training(name, seed, cfg, progress) for name in names
+    jobs = [plan_training(name, seed, cfg, specs[(name, seed)], progress) for name in names
             for seed in training_seeds(cfg)]
     return [j for j in jobs if j is not None]
 
 
-def recorded_train_time(name: str, seed: int, cfg: Config) -> float | None:
+def recorded_train_time(name: str, seed: int, cfg: TableRun) -> float | None:
     """The training wall time a saved policy's summary records (seconds)."""
     path = recipe_seed_dir(cfg, name, seed) / "train_summary.json"
     try:
@@ -266,43 +263,24 @@ def recorded_train_time(name: str, seed: int, cfg: Config) -> float | None:
         return None
 
 
-def objective_of(name: str, cfg: Config) -> str:
-    run_cfg = compose_config(run_overrides(name, 0, cfg))
-    return run_cfg.agent.objective(run_cfg.mdp)
+def candidates(cfg: TableRun, specs: Specs) -> list[Candidate]:
+    """The table's rows: the baselines, then each recipe over its training seeds (its
+    objective, where it trains, its seeds' policy files)."""
+    out = [Candidate(name, "baseline") for name in BASELINES]
+    for name in cfg.table.names(cfg.recipes):
+        seeds = training_seeds(cfg)
+        spec = specs[(name, seeds[0])]
+        out.append(Candidate(name, "learned", specs={s: specs[(name, s)] for s in seeds},
+                             files={s: recipe_seed_dir(cfg, name, s) for s in seeds},
+                             objective=spec.agent.objective(spec.mdp),
+                             trained_on=trained_on(cfg, name)))
+    return out
 
 
-def baseline_row(name: str, res: dict[str, Any], rule: dict[str, Any],
-                 heur: dict[str, Any]) -> dict[str, Any]:
-    g = gain_over(res, rule)
-    return {"policy": name, "objective": "", "trained_on": "", "seeds": [],
-            "trips_mean": res["trips_mean"],
-            "trips_std": res["trips_std"], "queue_mean": res["queue_mean"],
-            "failure_rate": res["failure_rate"], "gain_pct": g["gain_pct"],
-            "gain_ci95": g["gain_ci95"], "gain_min": g["gain_pct"], "gain_per_seed": [],
-            "gain_vs_heuristic_pct": gain_over(res, heur)["gain_pct"], "train_time_s": []}
-
-
-def learned_row(name: str, objective: str, per_seed: dict[int, dict[str, Any]],
-                rule: dict[str, Any], heur: dict[str, Any],
-                times: list[float | None], site: str) -> dict[str, Any]:
-    """Mean over seeds of every figure; the gain with its 95 % interval across seeds."""
-    gains = [gain_over(res, rule)["gain_pct"] for res in per_seed.values()]
-    vs_heur = [gain_over(res, heur)["gain_pct"] for res in per_seed.values()]
-    gi = seed_interval(gains)
-
-    def mean(key: str) -> float:
-        return sum(r[key] for r in per_seed.values()) / len(per_seed)
-
-    return {"policy": name, "objective": objective, "trained_on": site,
-            "seeds": list(per_seed),
-            "trips_mean": mean("trips_mean"), "trips_std": mean("trips_std"),
-            "queue_mean": mean("queue_mean"), "failure_rate": mean("failure_rate"),
-            "gain_pct": gi["mean"], "gain_ci95": gi["ci95"], "gain_min": gi["min"],
-            "gain_per_seed": gains, "gain_vs_heuristic_pct": sum(vs_heur) / len(vs_heur),
-            "train_time_s": times}
-
-
-def rows_markdown(rows: list[dict[str, Any]], cfg: Config) -> str:
+def rows_markdown(rows: list[Row] | list[dict[str, Any]], cfg: TableRun) -> str:
+    """``table.md``: the rows (:meth:`Row.table_markdown`; a row of ``table.json`` as well)
+    under the protocol's heading, then what the columns mean."""
+    rows = [r if isinstance(r, Row) else Row.from_table_dict(r) for r in rows]
     e = cfg.eval
     lines = [f"# Main comparison ({e.n_sims} simulations x {e.ticks} ticks, site "
              f"'{cfg.site.name}', evaluation seed {e.seed})", "",
@@ -310,19 +288,7 @@ def rows_markdown(rows: list[dict[str, Any]], cfg: Config) -> str:
              "failure rate | gain % vs rule | ± 95 % | per seed | vs heuristic | "
              "training time | one-step improvement |",
              "|---|---|---|---|---:|---:|---:|---:|---:|---|---:|---:|---:|"]
-    for r in rows:
-        seeds = ", ".join(map(str, r["seeds"])) or "-"
-        per_seed = ", ".join(f"{g:+.2f}" for g in r["gain_per_seed"]) or "-"
-        times = [t for t in r["train_time_s"] if t is not None]
-        ttime = f"{max(times) / 60:.1f} min max" if times else ("n/a" if r["seeds"] else "-")
-        ci = "-" if math.isnan(r["gain_ci95"]) else f"{r['gain_ci95']:.2f}"  # one seed: none
-        imp = ("-" if r.get("improvement_pct") is None else
-               f"{r['improvement_pct']:+.2f} ± {r['improvement_ci95']:.2f}")
-        lines.append(f"| {r['policy']} | {r['objective'] or '-'} | "
-                     f"{r.get('trained_on') or '-'} | {seeds} | "
-                     f"{r['trips_mean']:.2f} | {r['queue_mean']:.2f} | "
-                     f"{r['failure_rate']:.3f} | {r['gain_pct']:+.2f} | {ci} | "
-                     f"{per_seed} | {r['gain_vs_heuristic_pct']:+.2f} | {ttime} | {imp} |")
+    lines += [r.table_markdown() for r in rows]
     lines += ["", "Gain: trips over the rule's mean on the same sites, in %. Baselines: the "
               "paired gain and its 95 % interval over the simulations. Learned rows: the mean "
               "over their training seeds, the 95 % interval across seeds (Student's t), and "
@@ -338,7 +304,7 @@ def rows_markdown(rows: list[dict[str, Any]], cfg: Config) -> str:
     return "\n".join(lines) + "\n"
 
 
-def learning_curves(cfg: Config) -> dict[str, dict[int, list[tuple[float, float, float]]]]:
+def learning_curves(cfg: TableRun) -> dict[str, dict[int, list[tuple[float, float, float]]]]:
     """(training seconds, evaluation gain %, failure rate) of every evaluation of every
     saved run."""
     curves: dict[str, dict[int, list[tuple[float, float]]]] = {}
@@ -352,15 +318,16 @@ def learning_curves(cfg: Config) -> dict[str, dict[int, list[tuple[float, float,
     return curves
 
 
-def evaluate_table(cfg: Config, times: dict[tuple[str, int], float | None]
-                   ) -> list[dict[str, Any]]:
+def evaluate_table(cfg: TableRun, times: dict[tuple[str, int], float | None], specs: Specs,
+                   planner: Any, meta: dict[str, Any]) -> list[dict[str, Any]]:
     """Evaluate the baselines and every recipe's seeds (all trained by now), write the
-    table; ``times``: each training's wall time in seconds (None if unknown)."""
-    out = Path(cfg.table.out)
-    e = cfg.eval
-    meta = run_info(cfg, seed=e.seed)
-    total = len(BASELINES) + len(cfg.table.names(cfg.recipes)) * cfg.table.seeds
-    done = []
+    table; ``times``: each training's wall time in seconds (None if unknown); ``specs``:
+    each training's run spec; ``planner``: the one-step improvement's planner settings;
+    ``meta``: the run's provenance."""
+    out, e = Path(cfg.table.out), cfg.eval
+    cands = candidates(cfg, specs)
+    total = sum(max(1, len(c.files)) for c in cands)
+    done: list[str] = []
 
     def evaluate(policy, label: str) -> dict[str, Any]:
         res = evaluate_with(policy, cfg.site, e, name=label)
@@ -372,36 +339,43 @@ def evaluate_table(cfg: Config, times: dict[tuple[str, int], float | None]
               f"{res['failure_rate']:.3f} ({res['wall_time_s']:.1f} s)", flush=True)
         return res
 
-    baselines = load_policies(cfg, list(BASELINES))
+    baselines = load_policies(cfg.table.policies_dir, list(BASELINES), e.device,
+                              cfg.table.follow_symlinks)
     base = {name: evaluate(pol, name) for name, pol in baselines.items()}
     rule, heur = base["rule"], base["heuristic"]
-    planner = compose_config(["agent=planner"]).agent
 
-    def improve(row: dict[str, Any], policy, res: dict[str, Any]) -> dict[str, Any]:
+    def improve(row: Row, policy, res: dict[str, Any]) -> Row:
         if cfg.table.improve_sims:
             imp = improvement(policy, res, rule, cfg.site, cfg.table.improve_sims, e.ticks,
                               e.seed, planner, e.device)
-            print(f"[table] {row['policy']}: one step of improvement "
+            print(f"[table] {row.policy}: one step of improvement "
                   f"{imp['improvement_pct']:+.2f} ± {imp['improvement_ci95']:.2f}", flush=True)
-            row.update(improvement_pct=imp["improvement_pct"],
-                       improvement_ci95=imp["improvement_ci95"])
+            row.improved(imp)
         return row
 
-    rows = [improve(baseline_row(name, res, rule, heur), baselines[name], res)
+    rows = [improve(Row.of(name, {None: res}, rule, heur), baselines[name], res)
             for name, res in base.items()]
     gains = {name: gain_over(res, rule)["per_sim_gain_pct"] for name, res in base.items()}
-    for name in cfg.table.names(cfg.recipes):
+    for c in (c for c in cands if c.kind == "learned"):
         per_seed, first = {}, None
-        for seed in training_seeds(cfg):
-            pol = load_policy_file(recipe_seed_dir(cfg, name, seed), e.device)
-            per_seed[seed] = evaluate(pol, f"{name}_seed{seed}")
+        for seed, folder in c.files.items():
+            pol = load_policy_file(folder, e.device)
+            per_seed[seed] = evaluate(pol, f"{c.name}_seed{seed}")
             first = first or pol
-        rows.append(improve(learned_row(name, objective_of(name, cfg), per_seed, rule, heur,
-                                        [times[(name, s)] for s in per_seed],
-                                        trained_on(cfg, name)),
-                            first, per_seed[min(per_seed)]))
-        gains[name] = [g for res in per_seed.values()
-                       for g in gain_over(res, rule)["per_sim_gain_pct"]]
+        row = Row.of(c.name, per_seed, rule, heur, objective=c.objective,
+                     trained_on=c.trained_on, train_time_s=[times[(c.name, s)]
+                                                            for s in per_seed])
+        rows.append(improve(row, first, per_seed[min(per_seed)]))
+        gains[c.name] = [g for res in per_seed.values()
+                         for g in gain_over(res, rule)["per_sim_gain_pct"]]
+    write_table(cfg, rows, gains, times, meta)
+    return [r.table_dict() for r in rows]
+
+
+def write_table(cfg: TableRun, rows: list[Row], gains: dict[str, list[float]],
+                times: dict[tuple[str, int], float | None], meta: dict[str, Any]) -> None:
+    """``table.md``, ``table.csv``, ``table.json``, the box plot and the learning curves."""
+    out, e = Path(cfg.table.out), cfg.eval
     fig = plot_gain_boxplot(gains, f"trips per simulation vs rule mean ({e.n_sims} x {e.ticks}"
                                    f"; learned: {cfg.table.seeds} seeds pooled)")
     save_figure(fig, out / "boxplot.png")
@@ -409,18 +383,18 @@ def evaluate_table(cfg: Config, times: dict[tuple[str, int], float | None]
     if curves:
         save_figure(plot_learning_curves(curves), out / "learning_curves.png")
     write_text(out / "table.md", rows_markdown(rows, cfg))
+    dicts = [r.table_dict() for r in rows]
     write_csv(out / "table.csv", [{**r, "seeds": " ".join(map(str, r["seeds"])),
                                    "gain_per_seed": " ".join(f"{g:.4f}"
                                                              for g in r["gain_per_seed"]),
                                    "train_time_s": " ".join(f"{t:.1f}" if t is not None
                                                             else "n/a"
                                                             for t in r["train_time_s"])}
-                                  for r in rows], ROW_KEYS)
-    write_json(out / "table.json", rows)
+                                  for r in dicts], ROW_KEYS)
+    write_json(out / "table.json", dicts)
     write_json(out / "run_info.json", {**meta, "training_seeds": training_seeds(cfg),
                                        "train_time_s": {f"{k[0]}_seed{k[1]}": v
                                                         for k, v in times.items()}})
     print(rows_markdown(rows, cfg))
     print(f"[table] wrote {out}/table.md, table.csv, table.json, boxplot.png, "
           "learning_curves.png")
-    return rows

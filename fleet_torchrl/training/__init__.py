@@ -1,10 +1,12 @@
 """Training: the one loop that serves every learner, its run state and checkpoints. The
-schema imports at once; the rest on first use (:mod:`fleet_torchrl.utils.lazy`)."""
+schemas (the ``train`` group, the run spec) import at once; the rest on first use
+(:mod:`fleet_torchrl.utils.lazy`)."""
 
 from typing import TYPE_CHECKING
 
 from ..utils.lazy import lazy_exports
 from .config import TrainConfig
+from .spec import RunSpec
 
 __getattr__, __dir__ = lazy_exports(__name__, {
     **{n: ".checkpoint" for n in ("CHECKPOINT", "checkpoint_mismatch", "result_fingerprint",
@@ -22,5 +24,5 @@ if TYPE_CHECKING:
     from .progress import EvalEntry, Progress
     from .trainer import Trainer
 
-__all__ = ["CHECKPOINT", "EvalEntry", "Progress", "TrainConfig", "Trainer",
+__all__ = ["CHECKPOINT", "EvalEntry", "Progress", "RunSpec", "TrainConfig", "Trainer",
            "checkpoint_mismatch", "result_fingerprint", "training_fingerprint"]

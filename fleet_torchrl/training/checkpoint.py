@@ -1,8 +1,9 @@
 """Checkpoint identity: which settings a run's checkpoint belongs to.
 
-Every checkpoint stores the *training fingerprint* of its config (everything that decides
-what the run computes); resuming under another fingerprint would splice two runs, so it is
-refused with the list of fields that differ.
+Every checkpoint stores the *training fingerprint* of its run spec
+(:class:`~fleet_torchrl.training.spec.RunSpec`: everything that decides what the run
+computes); resuming under another fingerprint would splice two runs, so it is refused with
+the list of fields that differ.
 """
 
 from __future__ import annotations
@@ -17,8 +18,7 @@ from typing import Any
 from ..agents.policy_files import policy_file_sha256
 from ..utils.runinfo import to_jsonable
 from .config import DEFERRAL_SETTINGS
-
-Config = Any  # the root ``Config``, duck-typed: this layer sits below it
+from .spec import RunSpec
 
 CHECKPOINT = "checkpoint.ckpt"
 
@@ -32,30 +32,30 @@ RUN_CONTROL = {"out_dir", "overwrite", "device", "threads", "tensorboard", "prog
                "checkpoint_every"}
 
 
-def training_fingerprint(cfg: Config) -> dict[str, Any]:
-    """The part of the config that determines what a training run computes. An agent
+def training_fingerprint(spec: RunSpec) -> dict[str, Any]:
+    """What a training run of ``spec`` computes, as JSON-ready values. An agent
     setting added after runs were saved, declared with ``field(metadata={"neutral": v})``,
     is left out while it is ``v``, the value that computes what the runs before it did: the
     saved runs keep their fingerprint (and stay reusable and resumable)."""
-    train = {k: v for k, v in asdict(cfg.train).items()
+    train = {k: v for k, v in asdict(spec.train).items()
              if k not in RUN_CONTROL and k not in DEFERRAL_SETTINGS}
-    agent = without_neutral(cfg.agent)
+    agent = without_neutral(spec.agent)
     expert = agent.get("expert") if isinstance(agent, dict) else None
     if isinstance(expert, dict) and expert.get("bases"):  # a parallel rollout's teacher:
         expert["bases"] = [_with_content(b) for b in expert["bases"]]  # its files' content
-    return to_jsonable({"site": cfg.site, "state": cfg.state, "mdp": cfg.mdp,
-                        "agent": agent, "network": cfg.network, "train": train,
-                        "seed": cfg.seed})
+    return to_jsonable({"site": spec.site, "state": spec.state, "mdp": spec.mdp,
+                        "agent": agent, "network": spec.network, "train": train,
+                        "seed": spec.seed})
 
 
-def result_fingerprint(cfg: Config) -> dict[str, Any]:
+def result_fingerprint(spec: RunSpec) -> dict[str, Any]:
     """What a published policy is: the training fingerprint and, when the policy defers to
     the heuristic (``train.defer``), the deferral settings its margin was calibrated with. A
     saved policy is reused only under the same result fingerprint; its run's checkpoint
     resumes under the training fingerprint alone (the deferral changes no training)."""
-    fp = training_fingerprint(cfg)
-    if cfg.train.defer != "none":
-        fp["deferral"] = to_jsonable({k: getattr(cfg.train, k) for k in DEFERRAL_SETTINGS})
+    fp = training_fingerprint(spec)
+    if spec.train.defer != "none":
+        fp["deferral"] = to_jsonable({k: getattr(spec.train, k) for k in DEFERRAL_SETTINGS})
     return fp
 
 
@@ -94,8 +94,8 @@ def fingerprint_diff(old: dict[str, Any], new: dict[str, Any], prefix: str = "")
     return out
 
 
-def checkpoint_mismatch(path: str | Path, cfg: Config) -> list[str]:
-    """Why the checkpoint at ``path`` cannot continue a run of ``cfg`` (empty if it can).
+def checkpoint_mismatch(path: str | Path, spec: RunSpec) -> list[str]:
+    """Why the checkpoint at ``path`` cannot continue a run of ``spec`` (empty if it can).
 
     Raises ``ValueError`` if the file is not a readable checkpoint.
     """
@@ -108,11 +108,11 @@ def checkpoint_mismatch(path: str | Path, cfg: Config) -> list[str]:
     stored = meta.get("config")
     if stored is None:
         return ["the checkpoint records no configuration (written by an older version)"]
-    return fingerprint_diff(stored, training_fingerprint(cfg))
+    return fingerprint_diff(stored, training_fingerprint(spec))
 
 
-def check_resumable(path: str | Path, cfg: Config) -> None:
-    """Raise unless the checkpoint at ``path`` can continue a run of ``cfg``: missing
+def check_resumable(path: str | Path, spec: RunSpec) -> None:
+    """Raise unless the checkpoint at ``path`` can continue a run of ``spec``: missing
     (``FileNotFoundError``), unreadable or of other settings (``ValueError``, naming the
     fields that differ). What a resume checks before it writes anything."""
     path = Path(path)
@@ -120,7 +120,7 @@ def check_resumable(path: str | Path, cfg: Config) -> None:
         raise FileNotFoundError(f"resume=true, but there is no checkpoint at {path}: point "
                                 "hydra.run.dir at the run to continue, or start a new run "
                                 "without resume=true")
-    diff = checkpoint_mismatch(path, cfg)
+    diff = checkpoint_mismatch(path, spec)
     if diff:
         raise ValueError(f"cannot resume from {path}: it belongs to another configuration "
                          f"({'; '.join(diff[:5])}); resume with the same settings or start a "

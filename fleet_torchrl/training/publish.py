@@ -24,14 +24,13 @@ import contextlib
 import os
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
 from ..agents.policy_files import POLICY_FILE
+from ..store import policy_name, seed_dir
 from ..utils.checks import ConfigError
 from ..utils.runinfo import file_sha256, read_json
 from .checkpoint import fingerprint_diff, result_fingerprint
-
-Config = Any  # the root ``Config``, duck-typed: this layer sits below it
+from .spec import RunSpec
 
 SUMMARY = "train_summary.json"
 
@@ -41,9 +40,19 @@ def holds_policy(folder: str | os.PathLike) -> bool:
     return any(os.path.lexists(Path(folder) / name) for name in (POLICY_FILE, SUMMARY))
 
 
-def published_diff(folder: str | os.PathLike, cfg: Config) -> list[str] | None:
-    """How the policy published in ``folder`` differs from a training of ``cfg``: an empty
-    list for the very same training (its summary records ``cfg``'s result fingerprint and
+def publish_dir(spec: RunSpec, policies_dir: str | os.PathLike,
+                follow_symlinks: bool = False) -> Path:
+    """Where a training of ``spec`` publishes its policy: ``train.out_dir`` if set, else
+    ``<policies_dir>/<name>/seed<seed>`` (:func:`~fleet_torchrl.store.seed_dir`, inside
+    ``policies_dir`` unless ``follow_symlinks``)."""
+    if spec.train.out_dir:
+        return Path(spec.train.out_dir)
+    return seed_dir(policies_dir, policy_name(spec), spec.seed, follow_symlinks)
+
+
+def published_diff(folder: str | os.PathLike, spec: RunSpec) -> list[str] | None:
+    """How the policy published in ``folder`` differs from a training of ``spec``: an empty
+    list for the very same training (its summary records ``spec``'s result fingerprint and
     the policy file's hash), ``key: old -> new`` lines for another one, None when nothing is
     published there."""
     folder = Path(folder)
@@ -55,7 +64,7 @@ def published_diff(folder: str | os.PathLike, cfg: Config) -> list[str] | None:
         return ["its train_summary.json is missing or unreadable"]
     if not isinstance(rec, dict) or not isinstance(rec.get("fingerprint"), dict):
         return ["its train_summary.json records no training settings"]
-    diff = fingerprint_diff(rec["fingerprint"], result_fingerprint(cfg))
+    diff = fingerprint_diff(rec["fingerprint"], result_fingerprint(spec))
     if diff:
         return diff
     try:
@@ -79,23 +88,24 @@ def published_by(folder: str | os.PathLike) -> str | None:
     return run if isinstance(run, str) and run else None
 
 
-def check_publish(cfg: Config, out_dir: str | os.PathLike,
-                  run_dir: str | os.PathLike | None = None) -> None:
-    """Raise :class:`ConfigError` (one line naming the folder) if a training of ``cfg``
+def check_publish(spec: RunSpec, out_dir: str | os.PathLike,
+                  run_dir: str | os.PathLike | None = None, resume: bool = False) -> None:
+    """Raise :class:`ConfigError` (one line naming the folder) if a training of ``spec``
     would replace a policy published in ``out_dir`` (see the module docstring); nothing to
-    check with ``train.overwrite=true`` or when ``out_dir`` is the run's own folder."""
-    if cfg.train.overwrite or same_folder(out_dir, run_dir):
+    check with ``train.overwrite=true`` or when ``out_dir`` is the run's own folder, nor
+    when ``resume`` continues the run in ``run_dir`` that published it."""
+    if spec.train.overwrite or same_folder(out_dir, run_dir):
         return
-    if cfg.resume and run_dir is not None and same_folder(run_dir, published_by(out_dir)):
+    if resume and run_dir is not None and same_folder(run_dir, published_by(out_dir)):
         return  # this run's own publication, resumed
-    diff = published_diff(out_dir, cfg)
+    diff = published_diff(out_dir, spec)
     if diff is None:
         return
-    where = f"train.out_dir={out_dir}" if cfg.train.out_dir else str(out_dir)
+    where = f"train.out_dir={out_dir}" if spec.train.out_dir else str(out_dir)
     if not diff:
         raise ConfigError(
             f"{where} already holds the policy of this same training (same settings, seed "
-            f"{cfg.seed}): it is kept and there is nothing to train; evaluate it, or pass "
+            f"{spec.seed}): it is kept and there is nothing to train; evaluate it, or pass "
             "train.overwrite=true to train it again and replace it")
     raise ConfigError(
         f"{where} already holds a policy of another training ({'; '.join(diff[:3])}): it is "
@@ -124,4 +134,5 @@ def publish_lock(folder: str | os.PathLike) -> Iterator[None]:
         os.close(fd)
 
 
-__all__ = ["SUMMARY", "check_publish", "holds_policy", "publish_lock", "published_diff"]
+__all__ = ["SUMMARY", "check_publish", "holds_policy", "publish_dir", "publish_lock",
+           "published_diff"]

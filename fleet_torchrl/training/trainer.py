@@ -55,7 +55,7 @@ from ..agents.policy_files import POLICY_FILE, first_non_finite, save_policy
 from ..agents.registry import LearnerContext, get_agent
 from ..env import FleetChargingEnv
 from ..evaluation import evaluate_policy, gain_over, site_strata, strata_below, worst_stratum_gain
-from ..store import default_policy_dir, policy_name
+from ..store import policy_name
 from ..utils.monitor import Monitor
 from ..utils.numerics import flush_denormals
 from ..utils.paths import hold_run_dir, release_run_dir
@@ -69,19 +69,18 @@ from .checkpoint import (
     training_fingerprint,
 )
 from .progress import EvalEntry, Progress, selection_score
-
-Config = Any  # the root ``Config``, duck-typed: this layer sits below it
+from .spec import RunSpec
 
 log = logging.getLogger(__name__)
 
 
-def training_hparams(cfg: Config) -> dict[str, Any]:
+def training_hparams(spec: RunSpec) -> dict[str, Any]:
     """The TensorBoard hparams of a run: what shapes what it learns, the settings its
     checkpoint must match (:func:`~fleet_torchrl.training.checkpoint.training_fingerprint`:
     site, state, mdp, agent, network, train and seed), without run control (out_dir,
     progress, tensorboard, device, threads, checkpoint_every) and without the policy file an
     evaluation would load (``agent.policy``)."""
-    fp = training_fingerprint(cfg)
+    fp = training_fingerprint(spec)
     fp["agent"] = {k: v for k, v in fp["agent"].items() if k != "policy"}
     return fp
 
@@ -146,19 +145,33 @@ class LoopState:
 
 
 class Trainer:
-    """Setup stages: environment, learner, evaluation, monitoring, checkpoint; then :meth:`run`."""
+    """Setup stages: environment, learner, evaluation, monitoring, checkpoint; then :meth:`run`.
 
-    def __init__(self, cfg: Config, run_dir: str | Path) -> None:
-        self.spec = get_agent(cfg.agent.name)
+    Trains the run ``spec`` (``self.cfg``) in ``run_dir``; publishes its policy to
+    ``publish_dir`` (by default ``spec.train.out_dir``; the train command passes
+    :func:`~fleet_torchrl.training.publish.publish_dir`); ``resume``: continue from the
+    checkpoint in ``run_dir``."""
+
+    def __init__(self, spec: RunSpec, run_dir: str | Path,
+                 publish_dir: str | Path | None = None, resume: bool = False) -> None:
+        if not isinstance(spec, RunSpec):
+            raise TypeError(f"Trainer takes a RunSpec (RunSpec.of(config)), not "
+                            f"{type(spec).__name__}")
+        self.spec = get_agent(spec.agent.name)
         if not self.spec.trainable:
-            raise ValueError(f"agent.name={cfg.agent.name!r} is not trainable: use one of "
+            raise ValueError(f"agent.name={spec.agent.name!r} is not trainable: use one of "
                              + ", ".join(_trainable_names()))
-        self.cfg = cfg
+        publish_dir = publish_dir if publish_dir is not None else spec.train.out_dir
+        if not publish_dir:
+            raise ValueError("a Trainer needs a publish folder: publish_dir, or train.out_dir "
+                             "in its spec")
+        cfg = self.cfg = spec
+        self.resume = resume
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
         hold_run_dir(self.run_dir)  # one process per run folder (released when run() ends)
         self.name = policy_name(cfg)
-        self.out_dir = default_policy_dir(cfg)
+        self.out_dir = Path(publish_dir)
         self.device = torch.device(cfg.train.device)
         self.n_rounds = cfg.agent.training_rounds(cfg.train)
         self._say_budget()
@@ -378,7 +391,7 @@ class Trainer:
                                         "evaluation sites")
         with publish_lock(self.out_dir):
             try:
-                check_publish(self.cfg, self.out_dir, self.run_dir)
+                check_publish(self.cfg, self.out_dir, self.run_dir, self.resume)
             except ValueError:
                 return self.keep_in_run_dir(summary, "another run published a policy there "
                                             "while this one trained (train.overwrite=true "
@@ -422,7 +435,7 @@ class Trainer:
     def run(self, stop_after_rounds: int | None = None) -> dict[str, Any]:
         """Train to the end (or for ``stop_after_rounds`` more rounds, for tests of resume)."""
         c = self.cfg
-        resumed = c.resume and self.load_checkpoint()
+        resumed = self.resume and self.load_checkpoint()
         p = self.progress
         bar = None
         redirect = contextlib.nullcontext()

@@ -13,13 +13,13 @@ from hydra.plugins.sweeper import Sweeper
 
 class TableSweeper(Sweeper):
     """Plans the table's trainings, launches the needed ones, evaluates
-    (:class:`fleet_torchrl.experiments.launch.TableSweep`)."""
+    (:class:`fleet_torchrl.table_sweep.TableSweep`)."""
 
     def __init__(self) -> None:
         self.sweep_impl: Any = None
 
     def setup(self, *, hydra_context: Any, task_function: Any, config: Any) -> None:
-        from fleet_torchrl.experiments.launch import TableSweep
+        from fleet_torchrl.table_sweep import TableSweep
 
         self.sweep_impl = TableSweep(hydra_context, task_function, config)
 

@@ -10,10 +10,10 @@ from fleet_torchrl.agents.baselines import HeuristicPolicy, RulePolicy
 from fleet_torchrl.agents.dqn import DQNPolicy, NetworkConfig
 from fleet_torchrl.agents.planner import PlannerAgentConfig, PlannerPolicy
 from fleet_torchrl.config import compose_config
+from fleet_torchrl.evaluate import policy_of
 from fleet_torchrl.evaluation import simulate
 from fleet_torchrl.sim import Site, SiteConfig, rng
 from fleet_torchrl.sim.rollout import DecisionContext
-from fleet_torchrl.store import make_policy
 from fleet_torchrl.utils.checks import ConfigError
 
 
@@ -106,7 +106,7 @@ def test_its_futures_use_their_own_stream():
 
 
 def test_config_builds_the_planner_and_rejects_bad_values(tmp_path):
-    pol = make_policy(compose_config(["agent=planner", "agent.rollouts=4"]))
+    pol = policy_of(compose_config(["agent=planner", "agent.rollouts=4"]))
     assert isinstance(pol, PlannerPolicy) and isinstance(pol.base, HeuristicPolicy)
     assert pol.rollouts == 4
     with pytest.raises(ConfigError, match="agent.base"):
@@ -150,7 +150,7 @@ def test_config_names_each_extra_base_and_keeps_old_fingerprints(tmp_path):
     from fleet_torchrl.agents.config import ImitationAgentConfig
     from fleet_torchrl.training.checkpoint import without_neutral
 
-    pol = make_policy(compose_config(["agent=planner", "agent.rollouts=4",
+    pol = policy_of(compose_config(["agent=planner", "agent.rollouts=4",
                                       "agent.bases=[rule,heuristic]"]))
     assert [type(b) for b in pol.bases] == [HeuristicPolicy, RulePolicy, HeuristicPolicy]
     with pytest.raises(ConfigError, match=r"agent.bases\[1\]"):

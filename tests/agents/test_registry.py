@@ -19,7 +19,8 @@ from fleet_torchrl.agents import (
 )
 from fleet_torchrl.agents.config import AGENT_SCHEMAS
 from fleet_torchrl.config import CONF_DIR, ConfigError, compose_config
-from fleet_torchrl.store import make_policy, policy_name
+from fleet_torchrl.evaluate import policy_of
+from fleet_torchrl.store import policy_name
 
 
 def test_every_agent_has_a_config_file_and_a_schema():
@@ -99,12 +100,12 @@ def floor_agent():
 
 def test_a_new_learner_trains_saves_and_evaluates_through_the_registry(tmp_path,
                                                                        floor_agent):
-    from fleet_torchrl.training import Trainer
+    from fleet_torchrl.training import RunSpec, Trainer
 
     cfg = compose_config(["agent=floor", "train.max_episodes=8", "train.eval_every=1",
                           "train.eval_sims=8", "train.eval_ticks=200", "train.progress=false",
                           "train.tensorboard=false", f"train.out_dir={tmp_path / 'pol'}"])
-    trainer = Trainer(cfg, tmp_path / "run")
+    trainer = Trainer(RunSpec.of(cfg), tmp_path / "run")
     summary = trainer.run()
     assert summary["name"] == "floor_partial" and summary["rounds"] == 2
     assert summary["frames"] == trainer.learner.frames == 2 * 6 * 4  # every step learned from
@@ -112,7 +113,7 @@ def test_a_new_learner_trains_saves_and_evaluates_through_the_registry(tmp_path,
     assert isinstance(saved, FloorPolicy)
     assert 0.3 <= float(saved.threshold) < 1.0  # a soc_D it saw, not the initial 1.0
     cfg = compose_config(["agent=floor", f"agent.policy={tmp_path / 'pol'}"])
-    assert isinstance(make_policy(cfg), FloorPolicy)
+    assert isinstance(policy_of(cfg), FloorPolicy)
 
 
 def test_a_policy_file_of_another_agent_is_refused(tmp_path):
@@ -124,9 +125,9 @@ def test_a_policy_file_of_another_agent_is_refused(tmp_path):
                                                           "partial"), "dqn")
     cfg = compose_config(["agent=tabular", f"agent.policy={tmp_path / 'dqn'}"])
     with pytest.raises(ValueError, match="holds a DQNPolicy, not a policy of agent=tabular"):
-        make_policy(cfg)
+        policy_of(cfg)
     ok = compose_config(["agent=dqn", f"agent.policy={tmp_path / 'dqn'}"])
-    assert isinstance(make_policy(ok), DQNPolicy)
+    assert isinstance(policy_of(ok), DQNPolicy)
 
 
 def test_names_carry_the_objective_and_make_table_policies_are_found(tmp_path):
@@ -138,7 +139,7 @@ def test_names_carry_the_objective_and_make_table_policies_are_found(tmp_path):
     # make table saves per seed: evaluating agent=tabular finds the lowest seed's policy
     save_policy(tmp_path / "tabular" / "seed1" / "policy.pt", TabularQPolicy(), "tabular")
     cfg = compose_config(["agent=tabular", f"table.policies_dir={tmp_path}"])
-    assert isinstance(make_policy(cfg), TabularQPolicy)
+    assert isinstance(policy_of(cfg), TabularQPolicy)
 
 
 def test_the_makefile_timing_wrapper_exists():
@@ -214,10 +215,10 @@ def test_evaluating_on_another_site_says_how(tmp_path):
                           f"table.policies_dir={tmp_path}"])
     with pytest.raises(FileNotFoundError, match=r"tabular_five_vehicles.*agent\.policy=.*"
                                                 r"tabular$"):
-        make_policy(cfg)
+        policy_of(cfg)
     cfg = compose_config(["agent=tabular", "site=five_vehicles",
                           f"agent.policy={tmp_path / 'tabular'}"])
-    assert isinstance(make_policy(cfg), TabularQPolicy)
+    assert isinstance(policy_of(cfg), TabularQPolicy)
 
 
 def test_site_label_names_a_preset_and_the_fields_changed_from_it():
@@ -261,22 +262,23 @@ def test_a_policy_folder_linked_out_of_the_policies_is_not_followed(tmp_path):
     neither read (evaluation, the experiments' policies by name) nor written (training) unless
     ``table.follow_symlinks=true``; ``agent.policy=<path>`` reads it as named."""
     from fleet_torchrl.agents.tabular import TabularQPolicy
-    from fleet_torchrl.store import default_policy_dir, load_policies, saved_policy_path
+    from fleet_torchrl.store import load_policies, saved_policy_path
+    from fleet_torchrl.train import publish_folder
 
     root = _linked_policies(tmp_path)
     cfg = compose_config(["agent=tabular", f"table.policies_dir={root}"])
-    for call in (lambda: make_policy(cfg), lambda: load_policies(cfg, ["tabular"]),
-                 lambda: saved_policy_path(root, "tabular"), lambda: default_policy_dir(cfg)):
+    for call in (lambda: policy_of(cfg), lambda: load_policies(root, ["tabular"], "cpu"),
+                 lambda: saved_policy_path(root, "tabular"), lambda: publish_folder(cfg)):
         with pytest.raises(ConfigError, match="outside .*table.follow_symlinks=true") as e:
             call()
         assert "\n" not in str(e.value) and str(tmp_path / "elsewhere") in str(e.value)
     ok = compose_config(["agent=tabular", f"table.policies_dir={root}",
                          "table.follow_symlinks=true"])
-    assert isinstance(make_policy(ok), TabularQPolicy)
-    assert isinstance(load_policies(ok, ["tabular"])["tabular"], TabularQPolicy)
-    assert default_policy_dir(ok) == root / "tabular" / "seed0"
+    assert isinstance(policy_of(ok), TabularQPolicy)
+    assert isinstance(load_policies(root, ["tabular"], "cpu", True)["tabular"], TabularQPolicy)
+    assert publish_folder(ok) == root / "tabular" / "seed0"
     named = compose_config(["agent=tabular", f"agent.policy={root / 'tabular'}"])
-    assert isinstance(make_policy(named), TabularQPolicy)
+    assert isinstance(policy_of(named), TabularQPolicy)
 
 
 def test_a_seed_or_policy_file_linked_out_is_not_followed_but_a_linked_root_is(tmp_path):

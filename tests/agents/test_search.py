@@ -110,21 +110,21 @@ def test_tiny_search_improves_on_its_start():
 
 @pytest.mark.slow
 def test_search_trains_saves_and_resumes_through_the_loop(tmp_path):
-    from fleet_torchrl.training import Trainer
+    from fleet_torchrl.training import RunSpec, Trainer
 
     over = ["agent=search", "agent.population=16", "agent.elite=4", "agent.sites=8",
             "agent.ticks=600", "agent.generations=4", "train.eval_every=2",
             "train.eval_sims=16", "train.eval_ticks=600", "train.checkpoint_every=1",
             "train.progress=false", "train.tensorboard=false",
             f"train.out_dir={tmp_path}/policy"]
-    full = Trainer(compose_config(over), tmp_path / "full").run()
+    full = Trainer(RunSpec.of(compose_config(over)), tmp_path / "full").run()
     assert full["rounds"] == 4 and full["name"] == "search" and full["frames"] > 0
     pol = load_policy_file(tmp_path / "policy")
     assert isinstance(pol, SearchPolicy) and pol.charge.shape == (200,)
     # killed after 2 generations, resumed: the same distribution and the same best policy
     over2 = [o.replace("/policy", "/policy2") for o in over]
-    Trainer(compose_config(over2), tmp_path / "part").run(stop_after_rounds=2)
-    tr = Trainer(compose_config([*over2, "resume=true"]), tmp_path / "part")
+    Trainer(RunSpec.of(compose_config(over2)), tmp_path / "part").run(stop_after_rounds=2)
+    tr = Trainer(RunSpec.of(compose_config(over2)), tmp_path / "part", resume=True)
     resumed = tr.run()
     assert resumed["rounds"] == 4
     assert [h["trips"] for h in resumed["history"]] == [h["trips"] for h in full["history"]]
@@ -137,7 +137,7 @@ def test_search_seeded_with_a_saved_policy_keeps_at_least_its_start(tmp_path):
     the selection set."""
     from fleet_torchrl.agents import save_policy
     from fleet_torchrl.agents.tabular import TabularQPolicy
-    from fleet_torchrl.training import Trainer
+    from fleet_torchrl.training import RunSpec, Trainer
 
     tab = TabularQPolicy()
     tab.q[:, 1] = 1.0  # always charge
@@ -148,7 +148,7 @@ def test_search_seeded_with_a_saved_policy_keeps_at_least_its_start(tmp_path):
             "train.eval_every=1", "train.eval_sims=8", "train.eval_ticks=400",
             "train.progress=false", "train.tensorboard=false", f"train.out_dir={tmp_path}/out"]
     cfg = compose_config(over)
-    tr = Trainer(cfg, tmp_path / "run")
+    tr = Trainer(RunSpec.of(cfg), tmp_path / "run")
     assert torch.equal(tr.learner.policy().charge, tab(cell_centres()))
     summary = tr.run()
     first = summary["history"][0]

@@ -11,7 +11,7 @@ def test_policy_maps_from_saved_policies(tmp_path, saved_policies):
     root = saved_policies
     cfg = compose_config([f"table.policies_dir={root}", f"maps.out={tmp_path / 'maps'}",
                           "maps.planner_sims=4", "maps.planner_ticks=300"])
-    paths = run(cfg)
+    paths = run(cfg, compose_config(["agent=planner"]).agent)
     assert sorted(p.name for p in paths) == ["dqn_partial.png", "generalist.png",
                                              "heuristic.png", "imitation.png",
                                              "planner_default.png",

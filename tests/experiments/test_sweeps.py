@@ -10,6 +10,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+from types import SimpleNamespace
 
 import pytest
 
@@ -53,19 +54,20 @@ def test_search_starts_from_the_points_best_partial_policy(saved_policies):
     """The point's search starts from the best partial-state policy there, judged on the
     search's own selection set: the heuristic beats the rule and an untrained network on the
     default site; a saved policy is named by its file."""
-    from dataclasses import replace
-
     from fleet_torchrl.config import compose_config
-    from fleet_torchrl.experiments.sweeps import search_config, search_start
+    from fleet_torchrl.experiments.sweeps import search_start
     from fleet_torchrl.store import load_policies
+    from fleet_torchrl.sweeps import point_settings
 
-    cfg = compose_config([f"table.policies_dir={saved_policies}", TINY_SEARCH, *TINY_PICK])
-    site = replace(cfg.site, p_c=0.8)
-    run_cfg = search_config(cfg, site, cfg.sweep.searches["search_table"])
+    cfg = compose_config([f"table.policies_dir={saved_policies}", TINY_SEARCH, *TINY_PICK,
+                          "sweep.specialist=false"])
+    p = point_settings(cfg)
+    run_cfg = p.searches["search_table"]
     assert run_cfg.train.eval_sims == 8 and run_cfg.site.p_c == 0.8
     assert run_cfg.agent.tc_bins == 4
-    pols = load_policies(cfg, ["rule", "heuristic", "dqn_partial"])
-    assert search_start(cfg, run_cfg, pols) == "heuristic"
+
+    pols = load_policies(cfg.table.policies_dir, ["rule", "heuristic", "dqn_partial"], "cpu")
+    assert search_start(p, run_cfg, pols) == "heuristic"
     # a saved policy that acts as the heuristic beats the rule: it is named by its file
     from fleet_torchrl.agents import HeuristicPolicy, save_policy
     from fleet_torchrl.agents.search import SearchPolicy, cell_centres
@@ -73,19 +75,20 @@ def test_search_starts_from_the_points_best_partial_policy(saved_policies):
     good = SearchPolicy("table")
     good.charge.copy_(HeuristicPolicy()(cell_centres()))
     save_policy(saved_policies / "good" / "policy.pt", good, "search")
-    pols = load_policies(cfg, ["rule", "good"])
-    assert search_start(cfg, run_cfg, pols) == str(saved_policies / "good" / "policy.pt")
+    pols = load_policies(cfg.table.policies_dir, ["rule", "good"], "cpu")
+    assert search_start(p, run_cfg, pols) == str(saved_policies / "good" / "policy.pt")
     # the threshold class starts from the rule's or the heuristic's thresholds
-    thr_cfg = search_config(cfg, site, cfg.sweep.searches["search_threshold"])
-    pols = load_policies(cfg, ["rule", "heuristic", "dqn_partial"])
-    assert search_start(cfg, thr_cfg, pols) in ("heuristic",
+    thr_cfg = p.searches["search_threshold"]
+    pols = load_policies(cfg.table.policies_dir, ["rule", "heuristic", "dqn_partial"], "cpu")
+    assert search_start(p, thr_cfg, pols) in ("heuristic",
                                                  str(saved_policies / "dqn_partial" /
                                                      "policy.pt"))
     # a point's earlier search (not under table.policies_dir) starts the next from its file
     # (it failed T_C 40 and 50 when it was looked up as a saved policy)
-    pols = {"rule": load_policies(cfg, ["rule"])["rule"], "search_threshold": good}
+    pols = {"rule": load_policies(cfg.table.policies_dir, ["rule"], "cpu")["rule"],
+            "search_threshold": good}
     trained = {"search_threshold": saved_policies / "good" / "policy.pt"}
-    assert search_start(cfg, run_cfg, pols, trained) == str(trained["search_threshold"])
+    assert search_start(p, run_cfg, pols, trained) == str(trained["search_threshold"])
 
 
 def test_best_known_is_the_best_row_on_the_pick_set():
@@ -109,9 +112,13 @@ def test_planner_search_is_the_planner_over_the_best_search_that_beats_the_heuri
     from fleet_torchrl.agents import HeuristicPolicy
     from fleet_torchrl.agents.search import SearchPolicy
     from fleet_torchrl.config import compose_config
+    from fleet_torchrl.experiments.sweep_candidates import Pool
     from fleet_torchrl.experiments.sweeps import search_base
 
-    cfg = compose_config([])
+    def settings(*overrides):
+        return SimpleNamespace(sweep=compose_config(list(overrides)).sweep)
+
+    cfg = settings()
     groups = {"heuristic": {None: HeuristicPolicy()},
               "search_threshold": {None: SearchPolicy("threshold")},
               "search_table": {None: SearchPolicy("table", n_tc=4)},
@@ -120,14 +127,15 @@ def test_planner_search_is_the_planner_over_the_best_search_that_beats_the_heuri
     keys = {("heuristic", None): (0.0, -100.0), ("search_threshold", None): (0.0, -101.0),
             ("search_table", None): (0.0, -102.0), ("search_mlp", None): (0.0, -110.0),
             ("search", 0): (0.0, -120.0)}
-    assert search_base(cfg, groups, keys) == "search_table"  # the mlp has no kernel form
+    pool = Pool(policies=groups, keys=keys)
+    assert search_base(cfg, pool) == "search_table"  # the mlp has no kernel form
     keys[("search_table", None)] = (0.01, -130.0)  # fails on the pick set: worse
-    assert search_base(cfg, groups, keys) == "search_threshold"
+    assert search_base(cfg, pool) == "search_threshold"
     keys[("search_threshold", None)] = (0.0, -100.0)  # a tie with the heuristic: no row
-    assert search_base(cfg, groups, keys) is None
+    assert search_base(cfg, pool) is None
     keys[("search_threshold", None)] = (0.0, -100.5)
-    assert search_base(compose_config(["sweep.planner_search=false"]), groups, keys) is None
-    assert search_base(compose_config(["sweep.planner=false"]), groups, keys) is None
+    assert search_base(settings("sweep.planner_search=false"), pool) is None
+    assert search_base(settings("sweep.planner=false"), pool) is None
 
 
 def test_the_distilled_rows_teacher_and_state(tmp_path):
@@ -143,7 +151,8 @@ def test_the_distilled_rows_teacher_and_state(tmp_path):
     from fleet_torchrl.experiments.sweeps import distil_base, distil_state, distil_teacher
     from fleet_torchrl.utils.checks import ConfigError
 
-    cfg = compose_config([])
+    planner = compose_config(["agent=planner"]).agent
+    recipe_state = compose_config(["agent=imitation", "state=partial"]).state.name
     groups = {"heuristic": {None: HeuristicPolicy()},
               "search_threshold": {None: SearchPolicy("threshold")},
               "dqn_all": {s: DQNPolicy(NetworkConfig(), 31, "all") for s in (0, 1)}}
@@ -154,32 +163,37 @@ def test_the_distilled_rows_teacher_and_state(tmp_path):
     bases = {"heuristic": "planner", "search_threshold": "planner_search"}
     files = {("search_threshold", None): tmp_path / "t.pt", ("dqn_all", 0): tmp_path / "a.pt",
              ("dqn_all", 1): tmp_path / "b.pt"}
-    assert distil_base(cfg, keys, bases) == ("search_threshold", None)
-    assert distil_teacher(cfg, ("search_threshold", None), files).base == str(tmp_path / "t.pt")
-    assert distil_state(cfg, groups, ("search_threshold", None)) is None  # partial: the recipe's
+    for f in files.values():  # a teacher's base is a policy file that exists
+        f.touch()
+    assert distil_base(keys, bases) == ("search_threshold", None)
+    assert distil_teacher(planner, ("search_threshold", None), files).base == \
+        str(tmp_path / "t.pt")
+    # partial: the recipe's
+    assert distil_state(recipe_state, groups, ("search_threshold", None)) is None
     keys[("dqn_all", 0)] = (0.0, -103.5)  # better than every planner: the planner over it
-    assert distil_base(cfg, keys, bases) == ("dqn_all", 0)
-    teacher = distil_teacher(cfg, ("dqn_all", 0), files)
+    assert distil_base(keys, bases) == ("dqn_all", 0)
+    teacher = distil_teacher(planner, ("dqn_all", 0), files)
     assert teacher.base == str(tmp_path / "a.pt") and teacher.rollouts == 32
-    assert distil_state(cfg, groups, ("dqn_all", 0)) == "all"
+    assert distil_state(recipe_state, groups, ("dqn_all", 0)) == "all"
     keys[("planner_search", None)] = (0.0, -104.0)
-    assert distil_base(cfg, keys, bases) == ("search_threshold", None)
-    assert distil_base(cfg, keys, {"heuristic": "planner"}) == ("heuristic", None)
-    assert distil_teacher(cfg, ("heuristic", None), files).base == "heuristic"
-    assert distil_base(cfg, keys, {}) is None and distil_teacher(cfg, None, files).base \
+    assert distil_base(keys, bases) == ("search_threshold", None)
+    assert distil_base(keys, {"heuristic": "planner"}) == ("heuristic", None)
+    assert distil_teacher(planner, ("heuristic", None), files).base == "heuristic"
+    assert distil_base(keys, {}) is None and distil_teacher(planner, None, files).base \
         == "heuristic"
     with pytest.raises(ConfigError, match="has no policy file"):
-        distil_teacher(cfg, ("dqn_partial", 0), files)
+        distil_teacher(planner, ("dqn_partial", 0), files)
 
 
 def test_a_sweep_on_a_site_distribution_is_refused():
     from fleet_torchrl.config import compose_config
     from fleet_torchrl.experiments.sweeps import run_point
+    from fleet_torchrl.sweeps import point_settings
     from fleet_torchrl.utils.checks import ConfigError
 
     cfg = compose_config(["site=randomized", "+experiment=sweep_pc", "sweep.value=0.4"])
     with pytest.raises(ConfigError, match="site distribution"):
-        run_point(cfg)
+        run_point(point_settings(cfg))
 
 
 @pytest.mark.slow

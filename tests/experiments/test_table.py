@@ -111,7 +111,8 @@ def test_table_resumes_a_killed_training_from_its_checkpoint(tmp_path):
     """A training killed after its checkpoint (its policy never published) is resumed as a
     job with resume=true, and ends where an uninterrupted run does."""
     from fleet_torchrl.experiments.table import plan_jobs, run_overrides
-    from fleet_torchrl.training import Trainer
+    from fleet_torchrl.table_sweep import table_specs
+    from fleet_torchrl.training import RunSpec, Trainer
 
     recipes = {"tabular": ["agent=tabular", "agent.num_sites=8", "train.max_episodes=48",
                            "train.checkpoint_every=1", *TINY_TRAIN]}
@@ -126,9 +127,9 @@ def test_table_resumes_a_killed_training_from_its_checkpoint(tmp_path):
     try:
         cfg = compose_config(overrides)
         run_cfg = compose_config(run_overrides("tabular", 0, cfg))
-        Trainer(run_cfg, tmp_path / "out" / "runs" / "train_tabular_seed0").run(
+        Trainer(RunSpec.of(run_cfg), tmp_path / "out" / "runs" / "train_tabular_seed0").run(
             stop_after_rounds=3)  # "killed" after round 3's checkpoint
-        (job,) = plan_jobs(cfg)
+        (job,) = plan_jobs(cfg, table_specs(cfg))
         assert "resume=true" in job.overrides
     finally:
         os.chdir(cwd)
@@ -140,7 +141,7 @@ def test_table_resumes_a_killed_training_from_its_checkpoint(tmp_path):
     whole = compose_config(["agent=tabular", "agent.num_sites=8", "train.max_episodes=48",
                             "train.checkpoint_every=1", *TINY_TRAIN, "train.progress=false",
                             f"train.out_dir={tmp_path / 'whole'}"])
-    straight = Trainer(whole, tmp_path / "whole_run").run()
+    straight = Trainer(RunSpec.of(whole), tmp_path / "whole_run").run()
 
     def evals(s):  # the evaluations, without the wall times
         return [{k: v for k, v in h.items() if k != "wall_s"} for h in s["history"]]
@@ -186,12 +187,8 @@ def test_a_table_on_another_site_trains_there_and_refuses_what_cannot_reach_its_
     """``make table ARGS="site=five_vehicles"`` forwards the site to every recipe that has no
     site of its own and publishes under a name that says it (the default site's policies
     stay untouched); settings each recipe sets itself are refused at the table level."""
-    from fleet_torchrl.experiments.table import (
-        check_forwardable,
-        recipe_folder,
-        run_overrides,
-        site_overrides,
-    )
+    from fleet_torchrl.experiments.table import recipe_folder, run_overrides, site_overrides
+    from fleet_torchrl.table_sweep import check_forwardable
     from fleet_torchrl.utils.checks import ConfigError
 
     plain = compose_config([])

@@ -162,11 +162,11 @@ TINY = ["agent=imitation", "site.n_vehicles=5", "agent.num_sites=16", "agent.ste
 
 
 def _train(overrides, tmp, resume=False):
-    from fleet_torchrl.training import Trainer
+    from fleet_torchrl.training import RunSpec, Trainer
 
     cfg = compose_config([*overrides, f"train.out_dir={tmp}/policy",
                           f"resume={str(resume).lower()}"])
-    tr = Trainer(cfg, tmp)
+    tr = Trainer(RunSpec.of(cfg), tmp, resume=cfg.resume)
     return cfg, tr, tr.run()
 
 

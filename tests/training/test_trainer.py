@@ -23,11 +23,11 @@ TINY_DQN = ["agent=dqn", "agent.num_sites=4", "agent.steps_per_round=40",
 
 
 def _train(overrides, tmp, stop_after=None, resume=False):
-    from fleet_torchrl.training import Trainer
+    from fleet_torchrl.training import RunSpec, Trainer
 
     cfg = compose_config([*overrides, f"train.out_dir={tmp}/policy",
                           f"resume={str(resume).lower()}"])
-    tr = Trainer(cfg, tmp)
+    tr = Trainer(RunSpec.of(cfg), tmp, resume=cfg.resume)
     return tr, tr.run(stop_after_rounds=stop_after)
 
 
@@ -102,10 +102,10 @@ def test_dqn_training_and_resume(tmp_path):
 
 
 def test_untrainable_agent_is_refused(tmp_path):
-    from fleet_torchrl.training import Trainer
+    from fleet_torchrl.training import RunSpec, Trainer
 
     with pytest.raises(ValueError, match="not trainable"):
-        Trainer(compose_config(["agent=rule"]), tmp_path)
+        Trainer(RunSpec.of(compose_config(["agent=rule"])), tmp_path)
     with pytest.raises(ValueError, match="state.name='all' is invalid for agent=tabular"):
         compose_config(["agent=tabular", "state=all"])
 
@@ -175,9 +175,9 @@ def test_policy_is_promoted_only_at_a_successful_end(tmp_path):
     assert (tmp_path / "policy.pt").is_file()  # the run's own folder has its best so far
     assert not (tmp_path / "policy").exists()  # nothing published yet
     cfg = compose_config([*over, f"train.out_dir={tmp_path}/policy", "resume=true"])
-    from fleet_torchrl.training import Trainer
+    from fleet_torchrl.training import RunSpec, Trainer
 
-    summary = Trainer(cfg, tmp_path).run()
+    summary = Trainer(RunSpec.of(cfg), tmp_path, resume=True).run()
     pub = tmp_path / "policy"
     assert summary["policy_sha256"] == file_sha256(pub / "policy.pt")
     assert reusable(pub, cfg)
