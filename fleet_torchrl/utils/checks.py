@@ -6,15 +6,15 @@ Every schema validates its own fields with these helpers; a failure raises
 A field's own range is declared on the field, not written in ``validate``::
 
     @dataclass
-    class EvalConfig:
+    class MyConfig:
         n_sims: int = ranged(1000, 1, 10**8)               # [1, 100000000]
         lr: float = ranged(1e-3, 0, 1.0, lo_open=True)      # (0, 1.0]
         backend: str = ranged("auto", choices=BACKENDS)    # one of auto, eager, fused
         env_steps: int | None = ranged(None, 1, 10**7, optional=True)
-        margins: list[float] = ranged(lo=0, hi=100.0, lo_open=True, each=True,
-                                      default_factory=lambda: [0.1, 0.5])
+        margins: list[float] = ranged(lo=0, hi=100, lo_open=True, each=True,
+                                      default_factory=lambda: [0.1, 0.5])  # each in (0, 100]
 
-        def validate(self, path: str = "eval") -> EvalConfig:
+        def validate(self, path: str = "mine") -> MyConfig:
             check_fields(self, path)  # every declared field, in the order of the fields
             ...  # what depends on other fields or groups stays code here
             return self
@@ -22,7 +22,7 @@ A field's own range is declared on the field, not written in ``validate``::
 :func:`ranged` returns a :func:`dataclasses.field` whose metadata holds a :class:`Range`;
 :func:`check_fields` checks every such field of an instance under ``path`` and raises the
 same one-line :class:`ConfigError` as :func:`check_range` / :func:`check_choice` would
-(``eval.n_sims=0 is invalid: allowed [1, 100000000]``). :func:`declared_ranges` lists a
+(``mine.n_sims=0 is invalid: allowed [1, 100000000]``). :func:`declared_ranges` lists a
 schema's declarations (for tests and documentation). A bound that depends on another field
 (``n_vehicles <= n_nodes - 2``) is a cross-field check and stays code in ``validate``.
 """
