@@ -166,6 +166,7 @@ def _all_active(device: torch.device) -> Tensor:
 
 
 _CONSTANTS: dict[tuple, Tensor] = {}
+_CPU = torch.device("cpu")
 _LIMITS: dict[int, np.ndarray] = {}  # one-value tick limits as the CPU kernel reads them
 
 
@@ -183,12 +184,33 @@ def _contiguous(s: SiteState) -> None:
                 setattr(obj, name, t.to(dtype).contiguous())
 
 
-def _site_arrays(site: Site) -> tuple[np.ndarray, ...]:
-    cached = site.__dict__.get("_kernel_arrays")
+def _constants_group(site: Site, device: torch.device) -> tuple:
+    """The kernel's :class:`~fleet_torchrl.sim.kernel.Constants` of ``site`` (numpy views on
+    the CPU), built once per device."""
+    key = ("_kernel_constants_group", device)
+    cached = site.__dict__.get(key)
     if cached is None:
-        cached = site.__dict__["_kernel_arrays"] = tuple(
-            t.numpy() for t in site.kernel_constants("cpu"))
+        tables, geo, energy = (_view(t) for t in site.kernel_constants(device))
+        cached = site.__dict__[key] = tuple(_k.Constants(tables=tables, geo=geo, energy=energy))
     return cached
+
+
+def _policy_group(pol: KernelPolicy, device: torch.device) -> tuple:
+    """The kernel's :class:`~fleet_torchrl.sim.kernel.Policy` of ``pol``, built once per
+    device."""
+    cached = pol.__dict__.get("_group")
+    if cached is None or cached[0] != device:
+        rows, thresholds, table = (pol.numpy_arrays() if device.type == "cpu"
+                                   else pol.arrays(device))
+        cached = pol.__dict__["_group"] = (device, tuple(_k.Policy(
+            kind=int(pol.kind), rows=rows, thresholds=thresholds, table=table,
+            n_tc=int(pol.n_tc))))
+    return cached[1]
+
+
+def _view(t: Tensor) -> np.ndarray | Tensor:
+    """A tensor as the kernel takes it: a numpy view on the CPU, the tensor elsewhere."""
+    return t.numpy() if t.device.type == "cpu" else t
 
 
 _last_view: list = [None, None]  # the tensor of the last _numpy_of call, and its view
@@ -208,6 +230,40 @@ def _numpy_of(t: Tensor, dtype: torch.dtype) -> np.ndarray:
 def _state_tensors(s: SiteState) -> tuple[Tensor, ...]:
     p = s.params
     return (s.pos, s.soc, s.left, s.charge, s.tick, p.n_vehicles, p.t_c, p.gain, p.closure)
+
+
+def _state_groups(views, site_hash) -> tuple[tuple, tuple]:
+    """The kernel's :class:`~fleet_torchrl.sim.kernel.State` and
+    :class:`~fleet_torchrl.sim.kernel.Params` from the views of a state's tensors
+    (:func:`_state_tensors` order) and the sites' closure hashes."""
+    pos, soc, left, charge, tick, n_veh, t_c, gain, closure = views
+    return (tuple(_k.State(pos=pos, soc=soc, left=left, charge=charge, tick=tick)),
+            tuple(_k.Params(site_hash=site_hash, n_veh=n_veh, t_c=t_c, gain=gain,
+                            closure=closure)))
+
+
+def _kernel_call(state: tuple, params: tuple, constants: tuple, limit, active, policy: tuple,
+                 counts, flags) -> tuple[tuple, ...]:
+    """The arguments of one kernel call: the groups of
+    :class:`~fleet_torchrl.sim.kernel.KernelArgs`, in its order, as plain tuples (the entry
+    points name them again). Plain because numba types a plain tuple of arrays in its
+    dispatcher's C fast path and a named one in Python (~7 us a call), and a named tuple
+    costs a Python call to build (~0.5 us): the groups that last (``state``, ``params``,
+    ``constants``, ``policy``) are built by name once and cached, the call's own
+    ``Run(limit, active)`` and ``Out(counts, flags)`` are plain pairs."""
+    return state, params, constants, (limit, active), policy, (counts, flags)
+
+
+def _cpu_state_groups(s: SiteState, views: list[np.ndarray], site_hash: np.ndarray
+                      ) -> tuple[tuple, tuple]:
+    """:func:`_state_groups` of a CPU state from its views (:func:`_state_arrays`), cached
+    while they and the hashes stay the same objects (the callers pass the same closure hashes
+    call after call)."""
+    cached = s.__dict__.get("_kernel_groups")
+    if cached is None or cached[0] is not views or cached[1] is not site_hash:
+        cached = (views, site_hash, *_state_groups(views, site_hash))
+        s.__dict__["_kernel_groups"] = cached
+    return cached[2], cached[3]
 
 
 def _state_arrays(s: SiteState) -> list[np.ndarray]:
@@ -278,8 +334,9 @@ def _advance_cpu(site: Site, state: SiteState, site_hash: Tensor, max_ticks: Ten
                  active: Tensor | None, pol: KernelPolicy) -> Events:
     """:func:`advance` on CPU tensors: numpy views (cached where they can be) straight into
     the numba kernel, a few microseconds of Python per call."""
-    pos, soc, left, charge, tick, n_veh, t_c, gain, closure = _state_arrays(state)
-    b = pos.shape[1]
+    views = _state_arrays(state)
+    tick = views[4]
+    b = tick.shape[0]
     if isinstance(max_ticks, Tensor):
         limit = max_ticks.to(torch.int64).reshape(-1).contiguous().numpy()
     else:
@@ -291,13 +348,13 @@ def _advance_cpu(site: Site, state: SiteState, site_hash: Tensor, max_ticks: Ten
     act = (_k.ALL_ACTIVE if active is None
            else active.to(torch.bool).reshape(-1).contiguous().numpy())
     hsh = _numpy_of(site_hash, torch.int64)
-    rows, thr, tab = pol.numpy_arrays()
-    _check_lengths(b, max_ticks=limit, active=act, policy_rows=rows, site_hash=hsh)
-    tables, geo, energy = _site_arrays(site)
+    policy = _policy_group(pol, _CPU)
+    _check_lengths(b, max_ticks=limit, active=act, policy_rows=policy[1],  # its rows
+                   site_hash=hsh)
     ints = np.empty((3, b), dtype=np.int64)
     flags = np.empty((3, b), dtype=np.bool_)
-    args = (pos, soc, left, charge, tick, hsh, limit, act, n_veh, t_c, gain, closure, tables,
-            geo, energy, pol.kind, rows, thr, tab, pol.n_tc, ints, flags)
+    args = _kernel_call(*_cpu_state_groups(state, views, hsh), _constants_group(site, _CPU), limit,
+                        act, policy, ints, flags)
     threads = min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS, _idle_cores())
     forked = _pool["pid"] not in (None, os.getpid())  # a child of a process with a pool
     if threads > 1 and not forked and _worth_threads(b, limit, tick, pol):
@@ -364,22 +421,24 @@ def _advance_device(site: Site, state: SiteState, site_hash: Tensor, max_ticks: 
     act = (_all_active(dev) if active is None else
            active.to(dev, torch.bool).reshape(-1).contiguous())
     hsh = site_hash.to(dev, torch.int64).contiguous()
-    rows, thr, tab = pol.arrays(dev)
-    _check_lengths(b, max_ticks=limit, active=act, policy_rows=rows, site_hash=hsh)
-    tables, geo, energy = site.kernel_constants(dev)
+    policy = _policy_group(pol, dev)
+    _check_lengths(b, max_ticks=limit, active=act, policy_rows=policy[1],  # its rows
+                   site_hash=hsh)
     ints = torch.empty(3, b, **kw)
     flags = torch.empty(3, b, dtype=torch.bool, device=dev)
-    args = [*_state_tensors(state)[:5], hsh, limit, act, *_state_tensors(state)[5:], tables,
-            geo, energy, pol.kind, rows, thr, tab, int(pol.n_tc), ints, flags]
+    args = _kernel_call(*_state_groups(_state_tensors(state), hsh), _constants_group(site, dev),
+                        limit, act, policy, ints, flags)
+    # numba's CUDA simulator works on host arrays in place
+    view = (lambda a: a.numpy()) if simulated else cuda.as_cuda_array
+    args = tuple(tuple(view(a) if isinstance(a, Tensor) else a for a in group)
+                 for group in args)
     kernel = _k.cuda_kernel()
     blocks = (b + _THREADS_PER_BLOCK - 1) // _THREADS_PER_BLOCK
-    if simulated:  # numba's CUDA simulator works on host arrays in place
-        kernel[blocks, _THREADS_PER_BLOCK](*[a.numpy() if isinstance(a, Tensor) else a
-                                             for a in args])
+    if simulated:
+        kernel[blocks, _THREADS_PER_BLOCK](*args)
     else:
         stream = cuda.external_stream(torch.cuda.current_stream().cuda_stream)
-        kernel[blocks, _THREADS_PER_BLOCK, stream](
-            *[cuda.as_cuda_array(a) if isinstance(a, Tensor) else a for a in args])
+        kernel[blocks, _THREADS_PER_BLOCK, stream](*args)
     return Events(ticks=ints[0], trips=ints[1], queue=ints[2], arrived=flags[0],
                   failed=flags[1], queued=flags[2])
 

@@ -31,16 +31,18 @@ Per site the call returns **events**, not rewards: ticks run, trips (arrivals at
 queue ticks, and whether its last tick brought an arrival, a failure or a queue tick. The
 objectives of :mod:`fleet_torchrl.env.objectives` turn them into rewards.
 
-``limit``, ``active`` and ``pol_row`` hold one value per site or one for all (length 1).
-Per-site parameters are always present (a single site is a batch of equal values): fleet
-size ``n_veh`` (the vehicles beyond it are parked and never touched), ``T_C``, the charging
-gain per tick, and the closure threshold (``X`` is closed in a tick iff its 32-bit draw is
-below it; 0 = never).
+A call's arrays travel as named groups (:class:`KernelArgs`, built by
+:mod:`fleet_torchrl.sim.fused`): the sites' :class:`State` (updated in place), their
+:class:`Params`, the site's :class:`Constants`, the :class:`Run` (tick limit, active
+sites), the :class:`Policy` and the :class:`Out` events. ``Run``'s arrays and the policy's
+``rows`` hold one value per site or one for all (length 1). Per-site parameters are always
+present (a single site is a batch of equal values).
 """
 
 from __future__ import annotations
 
 import types
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -68,6 +70,72 @@ F32_SOC_SCALE = np.float32(0.01)
 F32_BINS = np.float32(N_SOC_BINS)
 F32_BIN_EPS = np.float32(1e-4)
 ALL_ACTIVE = np.ones(1, dtype=np.bool_)  # ``active`` of a call that runs every site
+
+
+class State(NamedTuple):
+    """The sites' state, which a call updates in place (``V`` vehicle rows, ``B`` sites)."""
+
+    pos: np.ndarray  # int64 [V, B]: each vehicle's node
+    soc: np.ndarray  # float32 [V, B]: each vehicle's soc
+    left: np.ndarray  # int64 [V, B]: charging ticks left (0: not charging)
+    charge: np.ndarray  # bool [B]: the vehicle at D charges
+    tick: np.ndarray  # int64 [B]: the site's tick counter
+
+
+class Params(NamedTuple):
+    """Each site's own values (``[B]``)."""
+
+    site_hash: np.ndarray  # int64: its closure stream (Site.site_hash)
+    n_veh: np.ndarray  # int64: fleet size (the vehicle rows beyond it are parked, untouched)
+    t_c: np.ndarray  # int64: ticks of a charging session
+    gain: np.ndarray  # float32: soc a charging tick adds
+    closure: np.ndarray  # int64: X is closed in a tick iff its 32-bit draw is below (0: never)
+
+
+class Constants(NamedTuple):
+    """The tick rules' constants (:meth:`fleet_torchrl.sim.site.Site.kernel_constants`)."""
+
+    tables: np.ndarray  # int64 [2, 2 * stride]: successor, then the bits checked, per node
+    geo: np.ndarray  # int64 [stride, closed node's bit, leave when full]
+    energy: np.ndarray  # float32 [soc change idle, moving, failure line soc_low]
+
+
+class Run(NamedTuple):
+    """Which sites run and how far (one value per site, or one for all)."""
+
+    limit: np.ndarray  # int64: the tick counter a site stops at
+    active: np.ndarray  # bool: an inactive site runs no tick and gets zero events
+
+
+class Policy(NamedTuple):
+    """The policy deciding inside the kernel (``kind == NONE``: none, stop at arrivals)."""
+
+    kind: int  # NONE, THRESHOLD or TABLE
+    rows: np.ndarray  # int64: each site's row (one value per site, or one for all)
+    thresholds: np.ndarray  # float32 [R, N_THRESHOLD]: columns THR_*
+    table: np.ndarray  # int8 [R, cells]: action per cell of the discretised partial state
+    n_tc: int  # charger bins of a table
+
+
+class Out(NamedTuple):
+    """Each site's events over the call (``[3, B]``, written by it)."""
+
+    counts: np.ndarray  # int64 rows: ticks run, trips (arrivals at D), queue ticks
+    flags: np.ndarray  # bool rows: the last tick brought an arrival, a failure, a queue tick
+
+
+class KernelArgs(NamedTuple):
+    """Everything one call of the kernel reads and writes. The entry points take its groups
+    as plain tuples, in this order (:func:`fleet_torchrl.sim.fused._kernel_call`: numba's
+    dispatcher types a named tuple in Python, ~7 us a call), and name them with
+    :func:`named`."""
+
+    state: State
+    params: Params
+    constants: Constants
+    run: Run
+    policy: Policy
+    out: Out
 
 
 def mix32(x):
@@ -147,45 +215,77 @@ def decide(PL, E, nv, t_c, kind, row, pol_thr, pol_table, n_tc):
     return pol_table[row, cell] != 0
 
 
-def run_site_range(b0, b1, pos, soc, left, charge, tick, site_hash, limit, active, n_veh, t_c,
-              gain, closure, tables, geo, energy, kind, pol_row, pol_thr, pol_table, n_tc,
-              o_int, o_flag, PL, E):
-    """Run each active site ``b0 <= b < b1`` from its state to a failure, its tick limit, or
-    (``kind == NONE``) an arrival at ``D``, at least one tick; an inactive site gets zero
-    events. ``tables``: int64 ``[successor, bits checked]`` per node and decision; ``geo``:
-    int64 ``[stride, closed_bit, leave_when_full]``; ``energy``: float32 ``[d_idle, d_move,
-    soc_low]``; ``o_int``: ``[ticks, trips, queue]`` and ``o_flag``: ``[arrived, failed,
-    queued]`` per site; ``PL`` (int64, rows: nodes, ticks left) and ``E`` (soc): scratch
-    for a site's vehicles (local copies the compiler keeps in registers; the state arrays
-    are written back at the end). A CUDA thread runs one site (``b1 = b0 + 1``).
+def named(state, params, constants, run, policy, out):
+    """The plain tuples an entry point receives as the named :class:`KernelArgs` (a
+    relabelling at compile time, no work at run time)."""
+    return KernelArgs(State(*state), Params(*params), Constants(*constants), Run(*run),
+                      Policy(*policy), Out(*out))
+
+
+def tick_vehicles(PL, E, nv, seen, off, tables, g, tcb, lwf, d_idle, d_move, soc_low):
+    """One tick of a site's ``nv`` vehicles (scratch rows ``PL``: nodes, ticks left, and
+    ``E``: soc, updated): each moves to its successor unless an occupancy bit it checks is
+    in ``seen`` (``off``: the charging half of ``tables`` when the vehicle at ``D``
+    charges), charges, or idles, and its soc changes in float32, capped at 100. Returns the
+    occupancy bits that flipped, and whether a vehicle entered ``C``, one arrived at ``D``,
+    and some soc fell below ``soc_low``."""
+    into_c = False
+    arrived = False
+    failed = False
+    moved = 0
+    for v in range(nv):  # branch-free: selects, not jumps (moves follow closures)
+        p = PL[0, v]
+        idx = p + off
+        tgt = tables[0, idx]
+        charging = PL[1, v] > 0  # a charging vehicle has no target
+        move = ((tables[1, idx] & seen) == 0) & ~charging
+        s = E[v] + (g if charging else (d_move if move else d_idle))
+        s = F32_100 if s > F32_100 else s
+        E[v] = s
+        lf = PL[1, v] - charging
+        # the charger ends the session on a full battery
+        lf = 0 if lwf & charging & (s >= F32_100) else lf
+        enter_c = move & (tgt == 1)
+        PL[1, v] = tcb if enter_c else lf
+        into_c |= enter_c
+        arrived |= move & (tgt == 0)
+        moved ^= ((1 << p) ^ (1 << tgt)) if move else 0  # no two movers share a node
+        PL[0, v] = tgt if move else p
+        failed |= s < soc_low
+    return moved, into_c, arrived, failed
+
+
+def run_site_range(b0, b1, a, PL, E):
+    """Run each active site ``b0 <= b < b1`` of the call ``a`` (:class:`KernelArgs`) from its
+    state to a failure, its tick limit, or (``kind == NONE``) an arrival at ``D``, at least
+    one tick (:func:`tick_vehicles`); an inactive site gets zero events. ``PL`` (int64,
+    rows: nodes, ticks left) and ``E`` (soc): scratch rows for a site's vehicles (local
+    copies the compiler keeps in registers; the state arrays are written back at the end).
+    A CUDA thread runs one site (``b1 = b0 + 1``).
 
     Speed notes, measured: a range of sites per call, not one, because numba
-    reference-counts every array passed to a call (or sliced) with atomic operations, ~0.2 us
-    per site and call with the 25 arrays here, as much as the ticks of a decision epoch; and
-    fewer than 30 arguments per call (beyond that CPython passes them as one tuple, which
-    numba's inliner refuses)."""
-    stride = geo[0]
-    closed_bit = geo[1]
-    lwf = geo[2] != 0
-    d_idle = energy[0]
-    d_move = energy[1]
-    soc_low = energy[2]
-    na = active.shape[0]  # active, limit, pol_row: one value per site, or one for all
-    nl = limit.shape[0]
-    nr = pol_row.shape[0]
+    reference-counts every array passed to a call (or sliced), or bound to a variable that
+    outlives a block, with atomic operations (~0.2 us per site and call with the two dozen
+    arrays here, as much as the ticks of a decision epoch). So the groups are unpacked into
+    local names once per call, and the loop over sites passes no array to a helper."""
+    pos, soc, left, charge, tick = a.state
+    site_hash, n_veh, t_c, gain, closure = a.params
+    stride, closed_bit, lwf = a.constants.geo[0], a.constants.geo[1], a.constants.geo[2] != 0
+    d_idle, d_move, soc_low = a.constants.energy[0], a.constants.energy[1], a.constants.energy[2]
+    tables = a.constants.tables
+    limit, active = a.run
+    kind, pol_row, pol_thr, pol_table, n_tc = a.policy
+    counts, flags = a.out
     for b in range(b0, b1):
-        if not active[b % na]:
+        if not active[b % active.shape[0]]:
             for k in range(3):
-                o_int[k, b] = 0
-                o_flag[k, b] = False
+                counts[k, b] = 0
+                flags[k, b] = False
             continue
-        nv = n_veh[b]
-        tcb = t_c[b]
-        g = gain[b]
-        thr = closure[b]
+        nv, tcb, g, thr = n_veh[b], t_c[b], gain[b], closure[b]
         hs = site_hash[b] & M32
-        lim = limit[b % nl]
-        row = pol_row[b % nr]
+        lim = limit[b % limit.shape[0]]
+        row = pol_row[b % pol_row.shape[0]]
         ch = charge[b]
         t = tick[b]
         occ = 0  # occupancy bits, kept up to date move by move
@@ -194,41 +294,15 @@ def run_site_range(b0, b1, pos, soc, left, charge, tick, site_hash, limit, activ
             PL[1, v] = left[v, b]
             E[v] = soc[v, b]
             occ |= 1 << PL[0, v]
-        n = 0
-        trips = 0
-        queue = 0
-        arrived = False
-        failed = False
-        q = False
+        n = trips = queue = 0
         while True:
             occ_d = (occ & 1) != 0
             seen = occ  # what every vehicle checks: the tick's start, a closed X occupied
             if closed_now(hs, t, thr):
                 seen |= closed_bit
-            off = stride if ch else 0
-            into_c = False
-            arrived = False
-            failed = False
-            moved = 0
-            for v in range(nv):  # branch-free: selects, not jumps (moves follow closures)
-                p = PL[0, v]
-                idx = p + off
-                tgt = tables[0, idx]
-                charging = PL[1, v] > 0  # a charging vehicle has no target
-                move = ((tables[1, idx] & seen) == 0) & ~charging
-                s = E[v] + (g if charging else (d_move if move else d_idle))
-                s = F32_100 if s > F32_100 else s
-                E[v] = s
-                lf = PL[1, v] - charging
-                # the charger ends the session on a full battery
-                lf = 0 if lwf & charging & (s >= F32_100) else lf
-                enter_c = move & (tgt == 1)
-                PL[1, v] = tcb if enter_c else lf
-                into_c |= enter_c
-                arrived |= move & (tgt == 0)
-                moved ^= ((1 << p) ^ (1 << tgt)) if move else 0  # no two movers share a node
-                PL[0, v] = tgt if move else p
-                failed |= s < soc_low
+            moved, into_c, arrived, failed = tick_vehicles(
+                PL, E, nv, seen, stride if ch else 0, tables, g, tcb, lwf, d_idle, d_move,
+                soc_low)
             occ ^= moved
             q = occ_d & ch & ~into_c
             if arrived:
@@ -245,70 +319,70 @@ def run_site_range(b0, b1, pos, soc, left, charge, tick, site_hash, limit, activ
             pos[v, b] = PL[0, v]
             left[v, b] = PL[1, v]
             soc[v, b] = E[v]
-        charge[b] = ch
-        tick[b] = t
-        o_int[0, b] = n
-        o_int[1, b] = trips
-        o_int[2, b] = queue
-        o_flag[0, b] = arrived
-        o_flag[1, b] = failed
-        o_flag[2, b] = q
+        charge[b], tick[b] = ch, t
+        counts[0, b], counts[1, b], counts[2, b] = n, trips, queue
+        flags[0, b], flags[1, b], flags[2, b] = arrived, failed, q
 
 
 _jit = njit(cache=True, nogil=True)
+_inline = njit(cache=True, nogil=True, inline="always")
 mix32 = _jit(mix32)
 closed_now = _jit(closed_now)
 soc_bin = _jit(soc_bin)
-scaled_features = njit(cache=True, nogil=True, inline="always")(scaled_features)
-decide = njit(cache=True, nogil=True, inline="always")(decide)
+scaled_features = _inline(scaled_features)
+decide = _inline(decide)
+named = _inline(named)
+tick_vehicles = _inline(tick_vehicles)
 run_site_range = _jit(run_site_range)
 # the device functions, callees first: what cuda_kernel rebinds to their CUDA versions
-DEVICE_FUNCTIONS = ("mix32", "closed_now", "soc_bin", "scaled_features", "decide",
-                    "run_site_range")
+DEVICE_FUNCTIONS = ("mix32", "closed_now", "soc_bin", "scaled_features", "decide", "named",
+                    "tick_vehicles", "run_site_range")
 CHUNK = 64  # sites per run_site_range call of the parallel kernel
 
 
 @njit(cache=True, parallel=True, nogil=True)
-def advance_parallel(pos, soc, left, charge, tick, site_hash, limit, active, n_veh, t_c, gain,
-                     closure, tables, geo, energy, kind, pol_row, pol_thr, pol_table, n_tc,
-                     o_int, o_flag):
+def advance_parallel(state, params, constants, run, policy, out):
     """Every site of the batch, chunks of sites spread over the machine's cores (numba's
-    threading layer); each thread keeps a site's vehicles in its own scratch rows."""
+    threading layer); each thread keeps a site's vehicles in its own scratch rows. The
+    arguments: the groups of :class:`KernelArgs` as plain tuples. numba's parallel loop
+    takes arrays and scalars into its body, not tuples of arrays: the groups are taken
+    apart before it and named again inside it."""
+    pos, soc, left, charge, tick = state
+    site_hash, n_veh, t_c, gain, closure = params
+    tables, geo, energy = constants
+    limit, active = run
+    kind, rows, thresholds, table, n_tc = policy
+    counts, flags = out
     PL = np.empty((MAX_THREADS, 2, MAXV), np.int64)
     E = np.empty((MAX_THREADS, MAXV), np.float32)
     nb = pos.shape[1]
     for c in prange((nb + CHUNK - 1) // CHUNK):
         k = get_thread_id()
-        run_site_range(c * CHUNK, min(nb, (c + 1) * CHUNK), pos, soc, left, charge, tick,
-                  site_hash, limit, active, n_veh, t_c, gain, closure, tables, geo, energy,
-                  kind, pol_row, pol_thr, pol_table, n_tc, o_int, o_flag, PL[k], E[k])
+        a = named((pos, soc, left, charge, tick), (site_hash, n_veh, t_c, gain, closure),
+                  (tables, geo, energy), (limit, active), (kind, rows, thresholds, table, n_tc),
+                  (counts, flags))
+        run_site_range(c * CHUNK, min(nb, (c + 1) * CHUNK), a, PL[k], E[k])
 
 
 @njit(cache=True, nogil=True)
-def advance_serial(pos, soc, left, charge, tick, site_hash, limit, active, n_veh, t_c, gain,
-                   closure, tables, geo, energy, kind, pol_row, pol_thr, pol_table, n_tc,
-                   o_int, o_flag):
+def advance_serial(state, params, constants, run, policy, out):
     """The same on one core (small batches, short calls, one thread asked for)."""
+    a = named(state, params, constants, run, policy, out)
     PL = np.empty((2, MAXV), np.int64)
     E = np.empty(MAXV, np.float32)
-    run_site_range(0, pos.shape[1], pos, soc, left, charge, tick, site_hash, limit, active, n_veh,
-              t_c, gain, closure, tables, geo, energy, kind, pol_row, pol_thr, pol_table, n_tc,
-              o_int, o_flag, PL, E)
+    run_site_range(0, a.state.pos.shape[1], a, PL, E)
 
 
-def advance_cuda(pos, soc, left, charge, tick, site_hash, limit, active, n_veh, t_c, gain,
-                 closure, tables, geo, energy, kind, pol_row, pol_thr, pol_table, n_tc,
-                 o_int, o_flag):
+def advance_cuda(state, params, constants, run, policy, out):
     """The CUDA kernel: one thread per site, its vehicles in thread-local arrays. Compiled
     only by :func:`cuda_kernel` (its names ``cuda``, ``int64``, ``float32`` and the device
     functions are bound there)."""
+    a = named(state, params, constants, run, policy, out)
     b = cuda.grid(1)  # noqa: F821 (bound by cuda_kernel)
-    if b < pos.shape[1]:
+    if b < a.state.pos.shape[1]:
         PL = cuda.local.array((2, MAXV), int64)  # noqa: F821
         E = cuda.local.array(MAXV, float32)  # noqa: F821
-        run_site_range(b, b + 1, pos, soc, left, charge, tick, site_hash, limit, active, n_veh,
-                  t_c, gain, closure, tables, geo, energy, kind, pol_row, pol_thr, pol_table,
-                  n_tc, o_int, o_flag, PL, E)
+        run_site_range(b, b + 1, a, PL, E)
 
 
 @njit(cache=True, nogil=True)

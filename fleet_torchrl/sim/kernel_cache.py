@@ -11,8 +11,7 @@ from __future__ import annotations
 
 from . import kernel as _kernel
 
-CACHED = ("mix32", "closed_now", "soc_bin", "scaled_features", "decide", "run_site_range",
-          "advance_parallel", "advance_serial", "partial_features")
+CACHED = (*_kernel.DEVICE_FUNCTIONS, "advance_parallel", "advance_serial", "partial_features")
 MANIFEST = "fleet_torchrl_kernel.sha256.json"
 _called: set[str] = set()  # the kernels that have run in this process
 _verified: list[bool] = []  # the manifest was checked in this process

@@ -24,7 +24,7 @@ from fleet_torchrl.agents.threshold import ThresholdPolicy
 from fleet_torchrl.env import FleetChargingEnv
 from fleet_torchrl.env.config import MDPConfig
 from fleet_torchrl.evaluation import EvalConfig, simulate
-from fleet_torchrl.sim import Site, SiteConfig, fused
+from fleet_torchrl.sim import Site, SiteConfig, SiteRanges, fused
 from fleet_torchrl.utils.checks import ConfigError
 
 CONFIGS = {
@@ -312,6 +312,42 @@ def test_the_cuda_kernel_under_the_simulator_equals_the_cpu_kernel():
                        env=env, timeout=600)
     assert r.returncode == 0, r.stderr[-3000:]
     assert r.stdout.strip().endswith("same")
+
+
+def test_the_parallel_and_serial_kernels_give_the_same_call():
+    """One call's named arguments (sim/kernel.py ``KernelArgs``, as sim/fused.py builds them)
+    through both CPU entry points: chunks of sites on every core, and one core, write the
+    same states and events; inactive sites run no tick and get zero events."""
+    from fleet_torchrl.sim import kernel, kernel_cache
+
+    cfg = SiteConfig(name="randomized", ranges=SiteRanges(n_vehicles=[1, 5], t_c=[10, 50]))
+    site, idx = Site(cfg), torch.arange(200)
+    pol = HeuristicPolicy().kernel_policy()
+    runs = []
+    for entry in ("advance_parallel", "advance_serial"):
+        s, needs = site.init_state(1, idx)
+        site.decide(s, needs, torch.ones(200, dtype=torch.bool))
+        before = s.tick.clone()
+        active = (idx % 7 != 0).numpy()
+        counts, flags = np.empty((3, 200), np.int64), np.empty((3, 200), np.bool_)
+        cpu = torch.device("cpu")
+        args = fused._kernel_call(
+            *fused._state_groups(fused._state_arrays(s), site.site_hash(1, idx).numpy()),
+            fused._constants_group(site, cpu), np.full(1, 300, np.int64), active,
+            fused._policy_group(pol, cpu), counts, flags)
+        named = kernel.KernelArgs(*(g(*a) for g, a in zip(
+            (kernel.State, kernel.Params, kernel.Constants, kernel.Run, kernel.Policy,
+             kernel.Out), args, strict=True)))  # each group has its fields, in order
+        assert named.out.counts is counts and named.run.active is active
+        assert named.state.pos.shape == (5, 200) and named.policy.kind == fused.THRESHOLD
+        kernel_cache.call(entry, *args)
+        runs.append((s, counts, flags))
+    (a, ca, fa), (b, cb, fb) = runs
+    for f in ("pos", "soc", "left", "charge", "tick"):
+        assert torch.equal(bits(getattr(a, f)), bits(getattr(b, f))), f
+    assert np.array_equal(ca, cb) and np.array_equal(fa, fb)
+    assert (ca[:, ::7] == 0).all() and not fa[:, ::7].any()
+    assert torch.equal(a.tick[::7], before[::7]) and (ca[0, idx % 7 != 0] > 0).all()
 
 
 def test_objective_tables_grow_exactly():
