@@ -825,7 +825,7 @@ def test_a_spec_too_large_is_refused_before_anything_is_allocated(tmp_path, save
     because the stored tensors are not of its shapes."""
     import time
 
-    from fleet_torchrl.agents import dqn
+    from fleet_torchrl.agents.dqn import learner as dqn
 
     built = []
     real = dqn.relu_mlp
