@@ -445,7 +445,10 @@ def hydra_command(task: Callable[[Any], Any], config_name: str = "config",
                      config_name=config_name)(task)
 
     def main() -> Any:
-        register_configs()
+        from .utils.cli import user_errors
+
+        with user_errors():  # an agent from outside that cannot be imported: one line
+            register_configs()
         mark_multirun(sys.argv[1:])
         check_environment()
         with one_line_errors():
