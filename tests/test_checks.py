@@ -101,3 +101,68 @@ def test_devices_this_machine_does_not_have_are_refused():
         check_device("x.device", f"cuda:{n - 1}")
         with pytest.raises(ConfigError, match=f"allowed cuda:0 to cuda:{n - 1}"):
             check_device("x.device", f"cuda:{n}")
+
+
+def test_declared_ranges_check_like_the_calls_they_replace():
+    """A field declared with ``ranged`` is checked by ``check_fields`` under the schema's
+    path, with the message ``check_range`` / ``check_choice`` give, in the fields' order."""
+    from dataclasses import dataclass
+
+    from fleet_torchrl.utils.checks import (
+        check_choice,
+        check_fields,
+        declared_ranges,
+        ranged,
+    )
+
+    @dataclass
+    class Schema:
+        plain: str = "x"  # no declaration: not checked
+        n: int = ranged(3, 1, 10)
+        lr: float = ranged(0.5, 0, 1.0, lo_open=True)
+        cap: float = ranged(1.0, None, 2.0, hi_open=True, allowed="below 2")
+        kind: str = ranged("a", choices=("a", "b"))
+        lazy: str = ranged("a", choices=lambda: ("a", "c"))
+        steps: int | None = ranged(None, 1, 100, optional=True)
+        margins: list[float] = ranged(lo=0, hi=100.0, lo_open=True, each=True,
+                                      default_factory=lambda: [0.1, 1.0])
+
+    assert list(declared_ranges(Schema)) == ["n", "lr", "cap", "kind", "lazy", "steps",
+                                             "margins"]
+    assert Schema().margins == [0.1, 1.0] and Schema().margins is not Schema().margins
+    check_fields(Schema(steps=100, lr=1.0, cap=-5.0, kind="b", lazy="c"), "s")
+
+    def message(**bad) -> str:
+        with pytest.raises(ConfigError) as e:
+            check_fields(Schema(**bad), "s")
+        return str(e.value)
+
+    def expected(call, *args, **kwargs) -> str:
+        with pytest.raises(ConfigError) as e:
+            call(*args, **kwargs)
+        return str(e.value)
+
+    assert message(n=0) == expected(check_range, "s.n", 0, 1, 10) == \
+        "s.n=0 is invalid: allowed [1, 10]"
+    assert message(n=float("nan")) == "s.n=nan is invalid: allowed [1, 10]"
+    assert message(lr=0) == "s.lr=0 is invalid: allowed (0, 1.0]"  # the open bound itself
+    assert message(lr=1.5) == "s.lr=1.5 is invalid: allowed (0, 1.0]"
+    assert message(cap=2.0) == "s.cap=2.0 is invalid: allowed below 2"
+    assert message(kind="z") == expected(check_choice, "s.kind", "z", ("a", "b")) == \
+        "s.kind='z' is invalid: allowed one of a, b"
+    assert message(lazy="b") == "s.lazy='b' is invalid: allowed one of a, c"
+    assert message(steps=0) == "s.steps=0 is invalid: allowed [1, 100]"
+    assert message(margins=[0.5, 0.0]) == "s.margins[1]=0.0 is invalid: allowed (0, 100.0]"
+    assert message(margins=0.5) == \
+        "s.margins=0.5 is invalid: allowed a list of values in (0, 100.0]"
+    assert message(n=0, kind="z") == "s.n=0 is invalid: allowed [1, 10]"  # the first field
+    with pytest.raises(TypeError):
+        ranged(1, 0, 1, choices=("a",))
+
+
+def test_open_bounds_of_check_range():
+    check_range("x", 0.5, 0, 1, lo_open=True, hi_open=True)
+    for bad in (0, 0.0, 1, 1.0):
+        with pytest.raises(ConfigError, match=r"^x=.* is invalid: allowed \(0, 1\)$"):
+            check_range("x", bad, 0, 1, lo_open=True, hi_open=True)
+    check_range("x", 0, 0, 1)  # closed by default

@@ -278,3 +278,73 @@ def test_a_site_name_of_the_python_api_is_one_path_part():
         with pytest.raises(ConfigError) as e:
             SiteConfig(name=bad)
         assert str(e.value).startswith("site.name=") and "\n" not in str(e.value), bad
+
+
+# The schemas whose fields check their own ranges in code (the fields' declarations are the
+# rule, utils/checks.py: ranged), and the numeric fields checked in code by reason.
+UNDECLARED_MODULES = {"fleet_torchrl.agents.config": "the agent and network schemas"}
+RANGE_IN_CODE = {
+    ("Config", "seed"): "the root's, checked by config.validate",
+    ("SiteConfig", "n_vehicles"): "its bound is n_nodes - 2",
+    ("SiteConfig", "closed_node"): "its bound is n_nodes - 1",
+    ("SiteConfig", "xi"): "its bound is 100 - soc_low",
+    ("SiteRanges", "n_vehicles"): "a [low, high] pair, bounded by the site's nodes",
+    ("SiteRanges", "p_c"): "a [low, high] pair with low <= high",
+    ("SiteRanges", "t_c"): "a [low, high] pair with low <= high",
+    ("SweepConfig", "value"): "its bounds and kind are those of sweep.param",
+}
+NUMERIC = ("int", "float", "list[int]", "list[float]")
+
+
+def _schemas() -> list[type]:
+    """Every schema the root config registers, with the dataclasses nested in them."""
+    from dataclasses import fields, is_dataclass
+
+    from fleet_torchrl.agents.config import AGENT_SCHEMAS, NetworkConfig
+    from fleet_torchrl.config import TOOL_SCHEMAS
+    from fleet_torchrl.sim.config import SiteRanges
+
+    roots = [Config, NetworkConfig, *AGENT_SCHEMAS.values(), *TOOL_SCHEMAS.values(), SiteRanges]
+    roots += [f.default_factory for f in fields(Config)
+              if is_dataclass(f.default_factory)]  # the groups: SiteConfig, TrainConfig, ...
+    return list(dict.fromkeys(roots))
+
+
+def test_every_numeric_field_declares_its_range_or_says_why_not():
+    from dataclasses import fields
+
+    from fleet_torchrl.utils.checks import declared_ranges
+
+    schemas = [s for s in _schemas() if s.__module__ not in UNDECLARED_MODULES]
+    names = {s.__name__ for s in schemas}
+    assert {"SiteConfig", "MDPConfig", "TrainConfig", "EvalConfig", "SweepConfig",
+            "BenchConfig", "SiteRanges", "Config"} <= names
+    missing = []
+    for schema in schemas:
+        declared = declared_ranges(schema)
+        for f in fields(schema):
+            numeric = str(f.type).removesuffix(" | None") in NUMERIC
+            if numeric and f.name not in declared and (schema.__name__, f.name) not in \
+                    RANGE_IN_CODE:
+                missing.append(f"{schema.__name__}.{f.name}")
+    assert not missing, f"numeric fields without a declared range: {missing}"
+    stale = [k for k in RANGE_IN_CODE if k[0] not in names or k[1] in declared_ranges(
+        next(s for s in schemas if s.__name__ == k[0]))]
+    assert not stale, f"RANGE_IN_CODE lists fields that declare a range: {stale}"
+
+
+def test_validate_checks_every_declared_field():
+    """Each schema's validate runs its fields' declarations: a field set out of its range
+    after construction is refused by name."""
+    from fleet_torchrl.utils.checks import declared_ranges
+
+    checked = 0
+    for schema in _schemas():
+        for name, r in declared_ranges(schema).items():
+            obj = schema()
+            bad = "no-such-option" if r.choices is not None else float("nan")
+            setattr(obj, name, [bad] if r.each else bad)
+            with pytest.raises(ConfigError, match=rf"\.{name}(\[0\])?=.* is invalid: allowed "):
+                obj.validate()
+            checked += 1
+    assert checked >= 40

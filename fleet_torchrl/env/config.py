@@ -6,26 +6,39 @@ from dataclasses import dataclass
 
 from ..utils.checks import (
     ConfigError,
-    check_choice,
+    check_fields,
     check_known_fields,
-    check_range,
+    ranged,
     validate_on_init,
 )
+
+
+def _encodings() -> tuple[str, ...]:
+    """The state encodings' names (torch: imported when a state is checked, not when the
+    schema is)."""
+    from .encodings import ENCODINGS
+
+    return tuple(ENCODINGS)
+
+
+def _objectives() -> tuple[str, ...]:
+    """The objectives' names (numpy and torch: not for composing a config)."""
+    from .objectives import OBJECTIVES
+
+    return tuple(OBJECTIVES)
 
 
 @dataclass
 class StateConfig:
     """State encoding seen by the agents (MODEL §2): ``partial`` (3 features) or ``all``."""
 
-    name: str = "partial"
+    name: str = ranged("partial", choices=_encodings)
 
     def __post_init__(self) -> None:
         validate_on_init(self)
 
     def validate(self, path: str = "state") -> StateConfig:
-        from .encodings import ENCODINGS
-
-        check_choice(f"{path}.name", self.name, tuple(ENCODINGS))
+        check_fields(self, path)
         return self
 
 
@@ -33,28 +46,24 @@ class StateConfig:
 class MDPConfig:
     """The decision process of MODEL §2 and its two objectives (``reward``)."""
 
-    tau_e: int = 3000  # episode tick budget (truncation)
-    reward: str = "thesis"  # thesis (MODEL §2.2) | throughput (trips, semi-Markov, MODEL §2.3)
-    p_f: float = 50.0  # cost of a failure tick (both objectives)
-    p_q: float = 1.0  # cost of a queue tick (thesis)
-    gamma: float = 0.9  # discount per decision (thesis)
-    gamma_tick: float = 0.998  # discount per tick (throughput): gamma_tick^dt per step
-    rho: float = 0.115  # reference trips per tick subtracted every tick (throughput)
+    tau_e: int = ranged(3000, 1, 10**9)  # episode tick budget (truncation)
+    # thesis (MODEL §2.2) | throughput (trips, semi-Markov, MODEL §2.3)
+    reward: str = ranged("thesis", choices=_objectives)
+    # the cost of a failure tick (both objectives) and of a queue tick (thesis); rewards are
+    # float32: a cost beyond 1e9 (squared in a TD loss) overflows to inf
+    p_f: float = ranged(50.0, 0.0, 1e9, allowed="[0, 1e9] (rewards are float32)")
+    p_q: float = ranged(1.0, 0.0, 1e9, allowed="[0, 1e9] (rewards are float32)")
+    gamma: float = ranged(0.9, 0.0, 1.0)  # discount per decision (thesis)
+    # discount per tick (throughput): gamma_tick^dt per step
+    gamma_tick: float = ranged(0.998, 0.0, 1.0)
+    # reference trips per tick subtracted every tick (throughput)
+    rho: float = ranged(0.115, 0.0, 1.0)
 
     def __post_init__(self) -> None:
         validate_on_init(self)
 
     def validate(self, path: str = "mdp") -> MDPConfig:
-        from .objectives import OBJECTIVES  # numpy and torch: not for composing a config
-
-        check_range(f"{path}.tau_e", self.tau_e, 1, 10**9)
-        check_choice(f"{path}.reward", self.reward, tuple(OBJECTIVES))
-        # rewards are float32: a cost beyond 1e9 (squared in a TD loss) overflows to inf
-        check_range(f"{path}.p_f", self.p_f, 0.0, 1e9, allowed="[0, 1e9] (rewards are float32)")
-        check_range(f"{path}.p_q", self.p_q, 0.0, 1e9, allowed="[0, 1e9] (rewards are float32)")
-        check_range(f"{path}.gamma", self.gamma, 0.0, 1.0)
-        check_range(f"{path}.gamma_tick", self.gamma_tick, 0.0, 1.0)
-        check_range(f"{path}.rho", self.rho, 0.0, 1.0)
+        check_fields(self, path)
         return self
 
     @classmethod

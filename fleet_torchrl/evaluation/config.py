@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ..utils.checks import check_choice, check_device, check_range, validate_on_init
+from ..utils.checks import check_device, check_fields, ranged, validate_on_init
 
 BACKENDS = ("auto", "eager", "fused")
 
@@ -19,28 +19,24 @@ def fused_switch(backend: str) -> bool | None:
 class EvalConfig:
     """Evaluation protocol of MODEL §4 (thesis: 1000 simulations x 10 000 ticks)."""
 
-    n_sims: int = 1000
-    ticks: int = 10000
-    seed: int = 0
+    n_sims: int = ranged(1000, 1, 10**8)
+    ticks: int = ranged(10000, 1, 10**9)
+    seed: int = ranged(0, 0, 2**32 - 1)
     out: str | None = None  # result JSON path; the per-simulation CSV is written beside it
     overwrite: bool = False  # replace an existing result at ``out`` (else the run is refused)
     device: str = "cpu"
-    chunk: int = 256  # ticks of closure draws generated at once
+    chunk: int = ranged(256, 1, 1_000_000)  # ticks of closure draws generated at once
     progress: bool = True
     # auto: the compiled event loop on CPU (sim/fused.py), else eager; eager: one tensor tick
     # at a time; fused: the compiled loop on CPU (other devices run eager). Same records.
-    backend: str = "auto"
+    backend: str = ranged("auto", choices=BACKENDS)
 
     def __post_init__(self) -> None:
         validate_on_init(self)
 
     def validate(self, path: str = "eval") -> EvalConfig:
-        check_range(f"{path}.n_sims", self.n_sims, 1, 10**8)
-        check_range(f"{path}.ticks", self.ticks, 1, 10**9)
-        check_range(f"{path}.seed", self.seed, 0, 2**32 - 1)
-        check_range(f"{path}.chunk", self.chunk, 1, 1_000_000)
+        check_fields(self, path)
         check_device(f"{path}.device", self.device)
-        check_choice(f"{path}.backend", self.backend, BACKENDS)
         return self
 
 

@@ -10,8 +10,9 @@ from ..utils.checks import (
     ConfigError,
     check_choice,
     check_device,
-    check_range,
+    check_fields,
     check_types,
+    ranged,
     validate_on_init,
 )
 from ..utils.paths import NAME_MAX, check_name
@@ -107,13 +108,13 @@ class TableConfig:
     out: str = "results/table"
     policies_dir: str = "results/policies"
     runs_dir: str = "outputs/table"  # Hydra run folders of the trainings (logs, checkpoints)
-    seeds: int = 3  # training seeds per learned run: seed, seed + 1, ...
+    seeds: int = ranged(3, 1, 1000)  # training seeds per learned run: seed, seed + 1, ...
     retrain: bool = False  # train again even when a saved policy exists
     evaluate: bool = True  # false: only make sure the policies exist (make policies)
     # one step of policy improvement over every row (the rollout planner, agent=planner
     # defaults, with the row's policy as base; learned rows: their lowest seed), on the
     # first improve_sims sites of the evaluation; 0 = skip
-    improve_sims: int = 30
+    improve_sims: int = ranged(30, 0, 10**7)
     only: list[str] | None = None  # some of the recipes (e.g. [dqn_partial,search]); null: all
     preview: bool = False  # append each recipe's preview budget (make quick)
     # a policy folder under policies_dir that is a symbolic link out of it is read or
@@ -126,8 +127,7 @@ class TableConfig:
     def validate(self, recipes: tuple[str, ...] | None = None, path: str = "table"
                  ) -> TableConfig:
         """Own ranges; with ``recipes`` (the root's check) also the names of ``only``."""
-        check_range(f"{path}.seeds", self.seeds, 1, 1000)
-        check_range(f"{path}.improve_sims", self.improve_sims, 0, 10**7)
+        check_fields(self, path)
         if self.only is not None and not self.only:
             raise ConfigError(f"{path}.only=[] is invalid: allowed null (every recipe) or "
                               f"some of {', '.join(recipes or ())}")
@@ -153,7 +153,8 @@ class SweepConfig:
     """One point of a generalisation sweep (MODEL §5 item 3): all policies on a changed site."""
 
     name: str = "pc"  # sweep name: results/sweeps/<name>.{csv,json,png}
-    param: str = "p_c"  # site field varied: p_c | t_c | n_vehicles
+    # site field varied: p_c | t_c | n_vehicles (SWEEP_PARAMS, below)
+    param: str = ranged("p_c", choices=lambda: SWEEP_PARAMS)
     value: float = 0.8  # the point evaluated by this job
     out: str = "results/sweeps"
     policies: list[str] = field(default_factory=lambda: [
@@ -179,8 +180,8 @@ class SweepConfig:
     specialist: bool = True
     specialists: dict[str, str] = field(default_factory=lambda: {
         "specialist_dqn": "dqn_partial", "specialist_tabular": "tabular"})
-    specialist_seeds: int = 1
-    more_seeds: int = 3
+    specialist_seeds: int = ranged(1, 1, 100)
+    more_seeds: int = ranged(3, 1, 100)
     more_seeds_at: list[str] = field(default_factory=lambda: ["n_vehicles=5", "t_c=50"])
     # learned policies act with the policy-independent safety guard (agents/base.py:
     # GuardedPolicy, charge below the site's reserve floor), reported as such
@@ -196,11 +197,11 @@ class SweepConfig:
     # decides inside the kernel and beats the heuristic on the pick set
     planner_search: bool = True
     improve: list[str] = field(default_factory=lambda: ["best_learned"])
-    improve_sims: int = 30
+    improve_sims: int = ranged(30, 0, 10**7)
     # the set best_known is picked on (the searches' selection seed, apart from eval.seed):
     # the best of every row above and every policy
-    pick_sims: int = 200
-    pick_ticks: int = 10_000
+    pick_sims: int = ranged(200, 1, 10**7)
+    pick_ticks: int = ranged(10_000, 1, 10**8)
     search_dir: str = "results/search"
     # the point's best planner distilled on the point's own site (row specialist_distilled,
     # a recipe of agent=imitation): its teacher is the planner over the base of the
@@ -224,7 +225,7 @@ class SweepConfig:
         parameter takes an integer (2.7 vehicles is no site), within the site field's
         bounds (the root also checks ``n_vehicles`` against the site's nodes); a packaged
         sweep's name keeps its parameter, so no point is filed under another sweep."""
-        check_choice(f"{path}.param", self.param, SWEEP_PARAMS)
+        check_fields(self, path)
         check_sweep_value(self.param, self.value, path=path)
         want = PACKAGED_SWEEPS.get(self.name)
         if want is not None and self.param != want:
@@ -233,9 +234,6 @@ class SweepConfig:
                               f"sweep; name a sweep of {self.param} otherwise "
                               f"(e.g. {path}.name={self.param}_mine)")
         check_name(f"{path}.name", self.name)  # results/sweeps/<name>/
-        check_range(f"{path}.pick_sims", self.pick_sims, 1, 10**7)
-        check_range(f"{path}.pick_ticks", self.pick_ticks, 1, 10**8)
-        check_range(f"{path}.improve_sims", self.improve_sims, 0, 10**7)
         for label, overrides in self.searches.items():
             if not label.startswith("search"):
                 raise ConfigError(f"{path}.searches.{label}={list(overrides)} is invalid: "
@@ -251,8 +249,6 @@ class SweepConfig:
                 raise ConfigError(f"{path}.specialists.{row}={recipe!r} is invalid: allowed "
                                   "row names start with 'specialist' (specialist_dqn), "
                                   "other than specialist_distilled (sweep.distil's row)")
-        check_range(f"{path}.specialist_seeds", self.specialist_seeds, 1, 100)
-        check_range(f"{path}.more_seeds", self.more_seeds, 1, 100)
         return self
 
 
@@ -301,8 +297,8 @@ class MapsConfig:
     # the share of charge decisions in each cell among the states it met on these sites
     # (site presets), over planner_sims x planner_ticks of the evaluation protocol
     planner_sites: list[str] = field(default_factory=lambda: ["default", "five_vehicles"])
-    planner_sims: int = 200
-    planner_ticks: int = 5000
+    planner_sims: int = ranged(200, 1, 100_000)
+    planner_ticks: int = ranged(5000, 1, 10**7)
 
     def __post_init__(self) -> None:
         validate_on_init(self)
@@ -313,8 +309,7 @@ class MapsConfig:
             check_choice(f"{path}.policies[{i}]", name, known)
         for i, name in enumerate(self.planner_sites):  # conf/site/<name>.yaml, planner_<name>.png
             check_name(f"{path}.planner_sites[{i}]", name)
-        check_range(f"{path}.planner_sims", self.planner_sims, 1, 100_000)
-        check_range(f"{path}.planner_ticks", self.planner_ticks, 1, 10**7)
+        check_fields(self, path)
         return self
 
 
@@ -322,16 +317,16 @@ class MapsConfig:
 class ObjectiveConfig:
     """``python -m fleet_torchrl.objective``: the MDP's reward per decision next to trips."""
 
-    n_sites: int = 200  # one episode of mdp.tau_e ticks per site
-    seed: int = 7  # training-style sites (rng.training_seed), apart from both eval sets
+    n_sites: int = ranged(200, 1, 10**7)  # one episode of mdp.tau_e ticks per site
+    # training-style sites (rng.training_seed), apart from both eval sets
+    seed: int = ranged(7, 0, 2**32 - 1)
     out: str = "results/objective"
 
     def __post_init__(self) -> None:
         validate_on_init(self)
 
     def validate(self, path: str = "objective") -> ObjectiveConfig:
-        check_range(f"{path}.n_sites", self.n_sites, 1, 10**7)
-        check_range(f"{path}.seed", self.seed, 0, 2**32 - 1)
+        check_fields(self, path)
         return self
 
 
@@ -340,11 +335,14 @@ class BenchConfig:
     """``make bench`` (``fleet-bench``): throughput of the simulator, the evaluation, the
     environment and the recipes' trainings (docs/BENCHMARKS.md)."""
 
-    batches: list[int] = field(default_factory=lambda: [1, 64, 1024, 8192])  # sites at once
-    site_ticks: float = 4e6  # site-ticks per measurement (ticks = site_ticks / B, 200..10000)
-    repeats: int = 5  # the median of this many runs
+    batches: list[int] = ranged(lo=1, hi=10**7, each=True,  # sites at once
+                                default_factory=lambda: [1, 64, 1024, 8192])
+    # site-ticks per measurement (ticks = site_ticks / B, 200..10000)
+    site_ticks: float = ranged(4e6, 1.0, 1e12)
+    repeats: int = ranged(5, 1, 1000)  # the median of this many runs
     device: str = "cpu"
-    env_steps: int | None = None  # environment steps per measurement; null: 200, 50 from B=1024
+    # environment steps per measurement; null: 200, 50 from B=1024
+    env_steps: int | None = ranged(None, 1, 10**7, optional=True)
     protocol: bool = True  # the thesis protocol's wall time (1000 x 10 000, CPU)
     training: bool = True  # every recipe's training throughput (conf/recipes/)
     out: str | None = None  # also write the figures as JSON
@@ -355,12 +353,7 @@ class BenchConfig:
     def validate(self, path: str = "bench") -> BenchConfig:
         if not self.batches:
             raise ConfigError(f"{path}.batches=[] is invalid: allowed a list of batch sizes")
-        for i, b in enumerate(self.batches):
-            check_range(f"{path}.batches[{i}]", b, 1, 10**7)
-        check_range(f"{path}.site_ticks", self.site_ticks, 1.0, 1e12)
-        check_range(f"{path}.repeats", self.repeats, 1, 1000)
-        if self.env_steps is not None:
-            check_range(f"{path}.env_steps", self.env_steps, 1, 10**7)
+        check_fields(self, path)
         check_device(f"{path}.device", self.device)
         return self
 

@@ -7,8 +7,10 @@ from dataclasses import dataclass
 from ..utils.checks import (
     ConfigError,
     as_number,
+    check_fields,
     check_known_fields,
     check_range,
+    ranged,
     validate_on_init,
 )
 from ..utils.paths import check_label
@@ -64,14 +66,18 @@ class SiteConfig:
     """The site model of MODEL §1. Defaults are the model's (this project's calibration)."""
 
     name: str = "default"
-    n_nodes: int = 15  # N_N: 0=D decision, 1=C charger, 2=B bypass, 3=M merge, 4..N_N-1 road
+    # N_N: 0=D decision, 1=C charger, 2=B bypass, 3=M merge, 4..N_N-1 road
+    n_nodes: int = ranged(15, 5, MAX_NODES,
+                          allowed=f"[5, {MAX_NODES}] (site occupancy is a 64-bit mask)")
     n_vehicles: int = 3  # N_V
-    p_c: float = 0.8  # probability that the closed node X is closed in a tick
-    t_c: int = 30  # T_C: charging ticks per charge
-    soc_low: float = 30.0  # SoC_low: any soc below this after a tick fails the site
-    e_move: float = 0.5  # energy lost by a vehicle that moves in a tick
-    e_idle: float = 0.02  # energy lost by a vehicle that waits (and is not charging)
-    e_charge: float = 40.0  # energy of one full charge (E_charge / T_C per charging tick)
+    p_c: float = ranged(0.8, 0.0, 1.0)  # probability that the closed node X is closed in a tick
+    t_c: int = ranged(30, 1, 100_000)  # T_C: charging ticks per charge
+    soc_low: float = ranged(30.0, 0.0, 100.0)  # SoC_low: any soc below this after a tick fails
+    e_move: float = ranged(0.5, 0.0, 100.0)  # energy lost by a vehicle that moves in a tick
+    # energy lost by a vehicle that waits (and is not charging)
+    e_idle: float = ranged(0.02, 0.0, 100.0)
+    # energy of one full charge (E_charge / T_C per charging tick)
+    e_charge: float = ranged(40.0, 0.0, 100.0)
     closed_node: int = 9  # X, a road node
     xi: float = 10.0  # initial soc ~ U[soc_low + xi, 100]
     leave_when_full: bool = True  # a charging vehicle that reaches soc 100 stops charging
@@ -118,19 +124,12 @@ class SiteConfig:
         The name may become part of a path (policy names, run folders): one part, never
         ``/`` or ``..`` (the root config asks more of ``site.name``: a plain name)."""
         check_label(f"{path}.name", self.name)
-        check_range(f"{path}.n_nodes", self.n_nodes, 5, MAX_NODES,
-                    allowed=f"[5, {MAX_NODES}] (site occupancy is a 64-bit mask)")
+        check_fields(self, path)
         check_range(f"{path}.n_vehicles", self.n_vehicles, 1, self.n_nodes - 2,
                     allowed=f"[1, n_nodes - 2 = {self.n_nodes - 2}] (vehicles start on distinct "
                             "nodes other than C)")
-        check_range(f"{path}.p_c", self.p_c, 0.0, 1.0)
-        check_range(f"{path}.t_c", self.t_c, 1, 100_000)
-        check_range(f"{path}.soc_low", self.soc_low, 0.0, 100.0)
         check_range(f"{path}.xi", self.xi, 0.0, 100.0 - self.soc_low,
                     allowed=f"[0, 100 - soc_low = {100.0 - self.soc_low}]")
-        check_range(f"{path}.e_move", self.e_move, 0.0, 100.0)
-        check_range(f"{path}.e_idle", self.e_idle, 0.0, 100.0)
-        check_range(f"{path}.e_charge", self.e_charge, 0.0, 100.0)
         check_range(f"{path}.closed_node", self.closed_node, 4, self.n_nodes - 1,
                     allowed=f"a road node in [4, n_nodes - 1 = {self.n_nodes - 1}]")
         if self.ranges is not None:

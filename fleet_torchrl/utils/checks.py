@@ -2,6 +2,29 @@
 
 Every schema validates its own fields with these helpers; a failure raises
 :class:`ConfigError` with one line naming the field, its value and what is allowed.
+
+A field's own range is declared on the field, not written in ``validate``::
+
+    @dataclass
+    class EvalConfig:
+        n_sims: int = ranged(1000, 1, 10**8)               # [1, 100000000]
+        lr: float = ranged(1e-3, 0, 1.0, lo_open=True)      # (0, 1.0]
+        backend: str = ranged("auto", choices=BACKENDS)    # one of auto, eager, fused
+        env_steps: int | None = ranged(None, 1, 10**7, optional=True)
+        margins: list[float] = ranged(lo=0, hi=100.0, lo_open=True, each=True,
+                                      default_factory=lambda: [0.1, 0.5])
+
+        def validate(self, path: str = "eval") -> EvalConfig:
+            check_fields(self, path)  # every declared field, in the order of the fields
+            ...  # what depends on other fields or groups stays code here
+            return self
+
+:func:`ranged` returns a :func:`dataclasses.field` whose metadata holds a :class:`Range`;
+:func:`check_fields` checks every such field of an instance under ``path`` and raises the
+same one-line :class:`ConfigError` as :func:`check_range` / :func:`check_choice` would
+(``eval.n_sims=0 is invalid: allowed [1, 100000000]``). :func:`declared_ranges` lists a
+schema's declarations (for tests and documentation). A bound that depends on another field
+(``n_vehicles <= n_nodes - 2``) is a cross-field check and stays code in ``validate``.
 """
 
 from __future__ import annotations
@@ -11,9 +34,9 @@ import functools
 import inspect
 import math
 import numbers
-from collections.abc import Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
-from dataclasses import fields
+from dataclasses import MISSING, dataclass, field, fields
 from typing import Any
 
 
@@ -138,19 +161,29 @@ def as_number(value: Any) -> int | float | None:
 
 
 def check_range(path: str, value: Any, lo: float | None = None, hi: float | None = None,
-                allowed: str | None = None) -> None:
+                allowed: str | None = None, *, lo_open: bool = False,
+                hi_open: bool = False) -> None:
     """Raise :class:`ConfigError` unless ``value`` is a finite number with
-    ``lo <= value <= hi``: NaN and inf are refused in every numeric type (Python, numpy
-    scalars, 0-d torch tensors), and so are ``bool``, strings and None (:func:`as_number`)."""
+    ``lo <= value <= hi`` (``lo < value`` with ``lo_open``, ``value < hi`` with
+    ``hi_open``): NaN and inf are refused in every numeric type (Python, numpy scalars, 0-d
+    torch tensors), and so are ``bool``, strings and None (:func:`as_number`). The message
+    says ``allowed``, by default the interval (``[1, 10]``, ``(0, 1.0]``)."""
     v = as_number(value)
     bad = v is None or (isinstance(v, float) and not math.isfinite(v))
-    bad = bad or (lo is not None and v < lo) or (hi is not None and v > hi)
+    bad = bad or (lo is not None and (v <= lo if lo_open else v < lo)) or \
+        (hi is not None and (v >= hi if hi_open else v > hi))
     if bad:
-        if allowed is None:
-            lo_s = "-inf" if lo is None else _fmt(lo)
-            hi_s = "inf" if hi is None else _fmt(hi)
-            allowed = f"[{lo_s}, {hi_s}]"
-        raise ConfigError(f"{path}={_fmt(value)} is invalid: allowed {allowed}")
+        raise ConfigError(f"{path}={_fmt(value)} is invalid: allowed "
+                          f"{allowed or interval(lo, hi, lo_open, hi_open)}")
+
+
+def interval(lo: float | None, hi: float | None, lo_open: bool = False,
+             hi_open: bool = False) -> str:
+    """The interval ``[lo, hi]`` as the messages write it (``(`` / ``)`` for an open bound,
+    ``-inf`` / ``inf`` for none)."""
+    lo_s = "-inf" if lo is None else _fmt(lo)
+    hi_s = "inf" if hi is None else _fmt(hi)
+    return f"{'(' if lo_open else '['}{lo_s}, {hi_s}{')' if hi_open else ']'}"
 
 
 def check_known_fields(cls: type, value: dict, path: str) -> None:
@@ -166,6 +199,89 @@ def check_known_fields(cls: type, value: dict, path: str) -> None:
 def check_choice(path: str, value: Any, choices: tuple[str, ...] | list[str]) -> None:
     if value not in choices:
         raise ConfigError(f"{path}={_fmt(value)} is invalid: allowed one of {', '.join(choices)}")
+
+
+RANGE_KEY = "fleet_range"  # the key of a field's :class:`Range` in its metadata
+
+
+@dataclass(frozen=True)
+class Range:
+    """What a field allows, declared with :func:`ranged`: a finite number in ``[lo, hi]``
+    (either bound open or absent), or one of ``choices`` (a tuple, or a function returning
+    the names, called at check time: a registry imported lazily); ``optional``: None too;
+    ``each``: the value is a list (or tuple) and every element is checked, as
+    ``path[i]``; ``allowed`` replaces the interval in the message."""
+
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+    hi_open: bool = False
+    allowed: str | None = None
+    choices: tuple[str, ...] | Callable[[], Iterable[str]] | None = None
+    optional: bool = False
+    each: bool = False
+
+    def describe(self) -> str:
+        """What is allowed, as the messages say it (``[1, 10]``, ``one of a, b``)."""
+        if self.choices is not None:
+            return f"one of {', '.join(self.names())}"
+        return self.allowed or interval(self.lo, self.hi, self.lo_open, self.hi_open)
+
+    def names(self) -> tuple[str, ...]:
+        """The allowed choices (empty for a numeric range)."""
+        c = self.choices
+        return () if c is None else tuple(c() if callable(c) else c)
+
+    def check(self, path: str, value: Any) -> None:
+        """Raise :class:`ConfigError` (one line naming ``path``) unless ``value`` is allowed."""
+        if value is None and self.optional:
+            return
+        if self.each:
+            if not isinstance(value, (list, tuple)):
+                raise ConfigError(f"{path}={_fmt(value)} is invalid: allowed a list of values "
+                                  f"in {self.describe()}")
+            for i, v in enumerate(value):
+                self._check_one(f"{path}[{i}]", v)
+        else:
+            self._check_one(path, value)
+
+    def _check_one(self, path: str, value: Any) -> None:
+        if self.choices is not None:
+            check_choice(path, value, self.names())
+        else:
+            check_range(path, value, self.lo, self.hi, self.allowed, lo_open=self.lo_open,
+                        hi_open=self.hi_open)
+
+
+def ranged(default: Any = MISSING, lo: float | None = None, hi: float | None = None, *,
+           lo_open: bool = False, hi_open: bool = False, allowed: str | None = None,
+           choices: tuple[str, ...] | Callable[[], Iterable[str]] | None = None,
+           optional: bool = False, each: bool = False,
+           default_factory: Callable[[], Any] | Any = MISSING) -> Any:
+    """A dataclass field (``default`` or ``default_factory``) with its allowed values
+    declared (:class:`Range`); :func:`check_fields` checks it."""
+    if (lo is not None or hi is not None) and choices is not None:
+        raise TypeError("ranged: a numeric range (lo, hi) or choices, not both")
+    meta = {RANGE_KEY: Range(lo, hi, lo_open, hi_open, allowed,
+                             tuple(choices) if isinstance(choices, (list, tuple)) else choices,
+                             optional, each)}
+    if default_factory is not MISSING:
+        return field(default_factory=default_factory, metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+def declared_ranges(cls_or_obj: Any) -> dict[str, Range]:
+    """The fields of a dataclass (class or instance) that declare what they allow, in the
+    order of the fields."""
+    return {f.name: f.metadata[RANGE_KEY] for f in fields(cls_or_obj) if RANGE_KEY in f.metadata}
+
+
+def check_fields(obj: Any, path: str) -> None:
+    """Check every declared field of the dataclass instance ``obj`` (:func:`ranged`), in the
+    order of the fields, as ``<path>.<field>``: the first one not allowed raises
+    :class:`ConfigError`. A schema's ``validate`` calls it."""
+    for name, r in declared_ranges(obj).items():
+        r.check(f"{path}.{name}", getattr(obj, name))
 
 
 def check_device(path: str, device: str) -> None:
