@@ -10,10 +10,10 @@ from __future__ import annotations
 
 import importlib
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
-from ..utils.checks import ConfigError, validate_on_init
+from ..utils.checks import ConfigError, check_fields, validate_on_init
 
 Need = tuple  # (setting, value, bytes, what): one allocation a setting sizes
 
@@ -61,8 +61,11 @@ class AgentConfig:
         validate_on_init(self)  # every agent's own fields (cross-checks need ``cfg``)
 
     def validate(self, cfg: Any = None, path: str = "agent") -> AgentConfig:
-        """Range checks of this agent's fields (``cfg``: the whole config, duck-typed, for
-        cross-checks such as the state the agent reads)."""
+        """Check this agent's fields: every range declared on a field
+        (:func:`~fleet_torchrl.utils.checks.ranged`); an agent with cross-field checks
+        (``cfg``: the whole config, duck-typed, such as the state the agent reads) makes them
+        after ``super().validate(cfg, path)``."""
+        check_fields(self, path)
         return self
 
     def objective(self, mdp: Any) -> str:
@@ -90,6 +93,14 @@ class AgentConfig:
         """Rounds of the training loop: ``train.max_episodes`` episodes, one per site and round
         (a learner with another budget overrides this)."""
         return math.ceil(train.max_episodes / self.num_sites)  # type: ignore[attr-defined]
+
+
+def neutral(f: Any, value: Any) -> Any:
+    """The dataclass field ``f`` (a :func:`~fleet_torchrl.utils.checks.ranged` one) marked
+    neutral at ``value``: a setting added after runs were saved, which leaves their training
+    fingerprint as it was while it keeps that value."""
+    return field(default=f.default, default_factory=f.default_factory,
+                 metadata={**f.metadata, "neutral": value})
 
 
 def import_object(target: str, what: str = "target") -> Any:

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 from fleet_torchrl.agents.schema import AgentConfig
-from fleet_torchrl.utils.checks import check_range
+from fleet_torchrl.utils.checks import ranged
 
 
 @dataclass
@@ -30,12 +30,8 @@ class {cls}(AgentConfig):
     """Charge when the vehicle at D is at most ``below`` percent full."""
 
     name: str = "{name}"
-    below: float = 30.0
+    below: float = ranged(30.0, 0.0, 100.0)
     policy_type: ClassVar[str] = "{module}.policy:LowPolicy"
-
-    def validate(self, cfg=None, path="agent"):
-        check_range(f"{{path}}.below", self.below, 0.0, 100.0)
-        return self
 '''
 POLICY = '''
 import torch

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import ClassVar
 
-from ...utils.checks import check_range
+from ...utils.checks import ranged
 from ..schema import AgentConfig
 
 
@@ -15,11 +15,8 @@ class RuleAgentConfig(AgentConfig):
 
     name: str = "rule"
     policy_type: ClassVar[str] = "fleet_torchrl.agents.baselines.policy:RulePolicy"
-    threshold: float = 40.0
+    threshold: float = ranged(40.0, 0.0, 100.0)
 
-    def validate(self, cfg: Any = None, path: str = "agent") -> RuleAgentConfig:
-        check_range(f"{path}.threshold", self.threshold, 0.0, 100.0)
-        return self
 
 
 @dataclass
@@ -29,12 +26,8 @@ class HeuristicAgentConfig(AgentConfig):
 
     name: str = "heuristic"
     policy_type: ClassVar[str] = "fleet_torchrl.agents.baselines.policy:HeuristicPolicy"
-    threshold: float = 40.0
-    upper: float = 60.0
-    others_below: float = 100.0  # charge early only if another vehicle is this low; 100 = off
+    threshold: float = ranged(40.0, 0.0, 100.0)
+    upper: float = ranged(60.0, 0.0, 100.0)
+    # charge early only if another vehicle is this low; 100 = off
+    others_below: float = ranged(100.0, 0.0, 100.0)
 
-    def validate(self, cfg: Any = None, path: str = "agent") -> HeuristicAgentConfig:
-        check_range(f"{path}.threshold", self.threshold, 0.0, 100.0)
-        check_range(f"{path}.upper", self.upper, 0.0, 100.0)
-        check_range(f"{path}.others_below", self.others_below, 0.0, 100.0)
-        return self

@@ -5,8 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
-from ...utils.checks import ConfigError, check_choice, check_range
-from ..schema import AgentConfig
+from ...utils.checks import ConfigError, ranged
+from ..schema import AgentConfig, neutral
 
 BASELINE_BASES = ("rule", "heuristic", "threshold")  # what a planner's base may name
 # several bases: under which base the other action (not the reference's) is scored
@@ -15,16 +15,18 @@ OTHER_UNDER = ("best", "gated", "reference")
 
 @dataclass
 class PlannerAgentConfig(AgentConfig):
-    """The rollout planner (agents/planner/policy.py). Defaults from the study in docs/PLANNER.md."""
+    """The rollout planner (``policy.py``); defaults from the study in docs/PLANNER.md."""
 
     name: str = "planner"
     policy_type: ClassVar[str] = "fleet_torchrl.agents.planner.policy:PlannerPolicy"
     base: str = "heuristic"  # base policy: rule | heuristic | threshold | a saved policy path
-    rollouts: int = 32  # futures per action (K)
-    horizon: int = 200  # ticks per future (H)
-    energy_value: float = 0.02  # trips per unit of soc left in the fleet at the horizon
-    confidence: float = 1.5  # standard errors by which the other action must score better
-    seed: int = 0  # the planner's own random streams
+    rollouts: int = ranged(32, 2, 4096)  # futures per action (K)
+    horizon: int = ranged(200, 1, 1_000_000)  # ticks per future (H)
+    # trips per unit of soc left in the fleet at the horizon
+    energy_value: float = ranged(0.02, 0.0, 10.0)
+    # standard errors by which the other action must score better
+    confidence: float = ranged(1.5, 0.0, 100.0)
+    seed: int = ranged(0, 0, 2**32 - 1)  # the planner's own random streams
     # more base policies (parallel rollout): each decision's futures run under every base; the
     # planner starts from `base` unless another base's own action is significantly better
     # there, and takes the other action where some base scores it significantly better;
@@ -33,21 +35,16 @@ class PlannerAgentConfig(AgentConfig):
     # several bases: the base the other action is scored under: the one scoring it best on
     # average (best), the reference's unless another scores it significantly better (gated),
     # or always the reference's (reference); neutral, so saved runs keep their fingerprint
-    other_under: str = field(default="best", metadata={"neutral": "best"})
+    other_under: str = neutral(ranged("best", choices=OTHER_UNDER), "best")
 
     def validate(self, cfg: Any = None, path: str = "agent") -> PlannerAgentConfig:
+        super().validate(cfg, path)
         _check_base(self.base, f"{path}.base")
         if len(self.bases) > 8:
             raise ConfigError(f"{path}.bases has {len(self.bases)} entries: allowed at most 8 "
                               "(each one adds the planner's futures once more)")
         for i, b in enumerate(self.bases):
             _check_base(b, f"{path}.bases[{i}]")
-        check_range(f"{path}.rollouts", self.rollouts, 2, 4096)
-        check_range(f"{path}.horizon", self.horizon, 1, 1_000_000)
-        check_range(f"{path}.energy_value", self.energy_value, 0.0, 10.0)
-        check_range(f"{path}.confidence", self.confidence, 0.0, 100.0)
-        check_range(f"{path}.seed", self.seed, 0, 2**32 - 1)
-        check_choice(f"{path}.other_under", self.other_under, OTHER_UNDER)
         return self
 
     def sites_per_simulation(self) -> int:

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
-from ...utils.checks import ConfigError, check_choice, check_range
+from ...utils.checks import ConfigError, check_range, ranged
 from ..schema import AgentConfig, Need
 
 POLICY_CLASSES = ("table", "mlp", "threshold")
@@ -20,34 +20,35 @@ class SearchAgentConfig(AgentConfig):
     policy_type: ClassVar[str] = "fleet_torchrl.agents.search.learner:SearchPolicy"
     learner_type: ClassVar[str] = "fleet_torchrl.agents.search.learner:SearchLearner"
     states: ClassVar[tuple[str, ...] | None] = ("partial",)
-    policy_class: str = "table"  # table (cells) | threshold (six thresholds) | mlp (a network)
-    population: int = 64  # candidates per generation
+    # table (cells) | threshold (six thresholds) | mlp (a network)
+    policy_class: str = ranged("table", choices=POLICY_CLASSES)
+    population: int = ranged(64, 2, 100_000)  # candidates per generation
     elite: int = 8  # candidates the distribution moves towards
-    sites: int = 64  # sites per candidate and generation (the same sites for all)
-    ticks: int = 3000  # ticks per site and generation
-    generations: int = 100  # rounds of the training loop
-    smoothing: float = 0.5  # step towards the elite: new = (1 - s) old + s elite
+    # sites per candidate and generation (the same sites for all)
+    sites: int = ranged(64, 1, 1_000_000)
+    ticks: int = ranged(3000, 1, 10**8)  # ticks per site and generation
+    generations: int = ranged(100, 1, 1_000_000)  # rounds of the training loop
+    # step towards the elite: new = (1 - s) old + s elite
+    smoothing: float = ranged(0.5, 1e-6, 1.0, allowed="(0, 1]")
     elitist: bool = False  # true: only elite candidates that beat the mode (candidate 0) count
     init: str = "heuristic"  # starting policy: rule | heuristic | threshold | uniform | a
     # saved policy's path (table: its actions; threshold: its thresholds; mlp: a clone of it)
-    p_min: float = 0.15  # table: charge probabilities stay in [p_min, 1 - p_min]
-    tc_bins: int = 2  # table: charger bins (free, then tc_bins - 1 shares of its busy time)
-    hidden: int = 16  # mlp: units per hidden layer
-    depth: int = 2  # mlp: hidden layers
+    # table: charge probabilities stay in [p_min, 1 - p_min]
+    p_min: float = ranged(0.15, 0.0, 0.49, allowed="[0, 0.49]")
+    # table: charger bins (free, then tc_bins - 1 shares of its busy time)
+    tc_bins: int = ranged(2, 2, 64)
+    hidden: int = ranged(16, 1, 4096)  # mlp: units per hidden layer
+    depth: int = ranged(2, 0, 16)  # mlp: hidden layers
     sigma_init: float | None = None  # mlp (default 1.0) / threshold (0.1): initial std dev
     sigma_min: float = 0.02  # mlp / threshold: standard deviations stay at least this
-    num_sites: int = 1  # sites of the training loop's environment (the search runs its own)
+    # sites of the training loop's environment (the search runs its own)
+    num_sites: int = ranged(1, 1, 1_000_000)
     policy: str | None = None  # saved policy for evaluation (default results/policies/search)
 
     def validate(self, cfg: Any = None, path: str = "agent") -> SearchAgentConfig:
-        check_choice(f"{path}.policy_class", self.policy_class, POLICY_CLASSES)
-        check_range(f"{path}.population", self.population, 2, 100_000)
+        super().validate(cfg, path)
         check_range(f"{path}.elite", self.elite, 1, self.population - 1,
                     allowed=f"[1, population - 1 = {self.population - 1}]")
-        check_range(f"{path}.sites", self.sites, 1, 1_000_000)
-        check_range(f"{path}.ticks", self.ticks, 1, 10**8)
-        check_range(f"{path}.generations", self.generations, 1, 1_000_000)
-        check_range(f"{path}.smoothing", self.smoothing, 1e-6, 1.0, allowed="(0, 1]")
         if self.init not in INITS:  # a saved policy (file or folder) on the partial state
             from pathlib import Path
 
@@ -56,14 +57,9 @@ class SearchAgentConfig(AgentConfig):
                 raise ConfigError(f"{path}.init={self.init!r} is invalid: allowed one of "
                                   f"{', '.join(INITS)} or the path of a saved policy "
                                   "(policy.pt or its folder) that exists")
-        check_range(f"{path}.p_min", self.p_min, 0.0, 0.49, allowed="[0, 0.49]")
-        check_range(f"{path}.tc_bins", self.tc_bins, 2, 64)
-        check_range(f"{path}.hidden", self.hidden, 1, 4096)
-        check_range(f"{path}.depth", self.depth, 0, 16)
         check_range(f"{path}.sigma_init", self.initial_sigma, 1e-6, 100.0)
         check_range(f"{path}.sigma_min", self.sigma_min, 0.0, self.initial_sigma,
                     allowed=f"[0, sigma_init = {self.initial_sigma}]")
-        check_range(f"{path}.num_sites", self.num_sites, 1, 1_000_000)
         return self
 
     @property

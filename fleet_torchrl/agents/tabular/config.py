@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
-from ...utils.checks import check_range
+from ...utils.checks import check_range, ranged
 from ..schema import AgentConfig
 
 
@@ -17,20 +17,20 @@ class TabularAgentConfig(AgentConfig):
     policy_type: ClassVar[str] = "fleet_torchrl.agents.tabular.learner:TabularQPolicy"
     learner_type: ClassVar[str] = "fleet_torchrl.agents.tabular.learner:TabularLearner"
     states: ClassVar[tuple[str, ...] | None] = ("partial",)
-    num_sites: int = 256  # sites simulated in parallel; one round = one episode per site
-    k: float = 100.0  # learning rate k / (t + k), t = visits of the state-action pair
-    eps_start: float = 1.0  # epsilon of the first episode
+    # sites simulated in parallel; one round = one episode per site
+    num_sites: int = ranged(256, 1, 1_000_000)
+    # learning rate k / (t + k), t = visits of the state-action pair
+    k: float = ranged(100.0, 1e-9, None, allowed="> 0")
+    eps_start: float = ranged(1.0, 0.0, 1.0)  # epsilon of the first episode
     eps_end: float = 0.3  # epsilon_min
-    eps_decay_episodes: int = 20  # episodes (per site) over which epsilon decays to eps_end
+    # episodes (per site) over which epsilon decays to eps_end
+    eps_decay_episodes: int = ranged(20, 1, 10**9)
     policy: str | None = None  # saved policy for evaluation (default results/policies/tabular)
 
     def validate(self, cfg: Any = None, path: str = "agent") -> TabularAgentConfig:
-        check_range(f"{path}.num_sites", self.num_sites, 1, 1_000_000)
-        check_range(f"{path}.k", self.k, 1e-9, None, allowed="> 0")
-        check_range(f"{path}.eps_start", self.eps_start, 0.0, 1.0)
+        super().validate(cfg, path)
         check_range(f"{path}.eps_end", self.eps_end, 0.0, self.eps_start,
                     allowed=f"[0, eps_start = {self.eps_start}]")
-        check_range(f"{path}.eps_decay_episodes", self.eps_decay_episodes, 1, 10**9)
         return self
 
     def epsilon(self, round_idx: int) -> float:

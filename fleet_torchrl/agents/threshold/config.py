@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import ClassVar
 
-from ...utils.checks import check_range
+from ...utils.checks import ranged
 from ..schema import AgentConfig
 
 
@@ -15,19 +15,9 @@ class ThresholdAgentConfig(AgentConfig):
 
     name: str = "threshold"
     policy_type: ClassVar[str] = "fleet_torchrl.agents.threshold.policy:ThresholdPolicy"
-    low: float = 40.0
-    free_upper: float | None = None
-    margin: float = 0.0
-    others_below: float | None = None
-    busy_tc: float | None = None
-    busy_upper: float | None = None
-
-    def validate(self, cfg: Any = None, path: str = "agent") -> ThresholdAgentConfig:
-        for name in ("low", "free_upper", "others_below", "busy_upper"):
-            v = getattr(self, name)
-            if v is not None:
-                check_range(f"{path}.{name}", v, 0.0, 100.0)
-        check_range(f"{path}.margin", self.margin, -100.0, 100.0)
-        if self.busy_tc is not None:
-            check_range(f"{path}.busy_tc", self.busy_tc, 0.0, 1.0)
-        return self
+    low: float = ranged(40.0, 0.0, 100.0, optional=True)
+    free_upper: float | None = ranged(None, 0.0, 100.0, optional=True)
+    margin: float = ranged(0.0, -100.0, 100.0)
+    others_below: float | None = ranged(None, 0.0, 100.0, optional=True)
+    busy_tc: float | None = ranged(None, 0.0, 1.0, optional=True)
+    busy_upper: float | None = ranged(None, 0.0, 100.0, optional=True)
