@@ -481,7 +481,10 @@ def hydra_command(task: Callable[[Any], Any], config_name: str = "config",
                      config_name=config_name)(task)
 
     def main() -> Any:
-        register_configs()
+        from .utils.cli import user_errors
+
+        with user_errors():  # an agent from outside that cannot be imported: one line
+            register_configs()
         if not OmegaConf.has_resolver("fleet_groups"):
             OmegaConf.register_new_resolver("fleet_groups", groups_help)
         mark_multirun(sys.argv[1:])

@@ -2,7 +2,8 @@
 ConfigStore, validates, and turns a composed Hydra config into typed dataclasses.
 
 Each schema lives beside the code it configures (``sim/config.py``: ``site``; ``env/config.py``:
-``state``, ``mdp``; ``agents/config.py``: every ``agent`` schema and ``network``;
+``state``, ``mdp``; ``agents/<agent>/config.py``: each ``agent`` schema, collected with those
+from outside the package in ``agents/config.py``; ``agents/dqn/config.py``: ``network``;
 ``training/config.py``: ``train``; ``evaluation/config.py``: ``eval``;
 ``experiments/config.py``: ``table``, ``sweep``, ``maps``, ``objective``, ``recipes``) and
 checks its own ranges; :func:`validate` runs them all and the cross-group checks. Every YAML
@@ -25,7 +26,14 @@ from typing import Any
 
 from omegaconf import MISSING, DictConfig, OmegaConf
 
-from .agents.config import AGENT_SCHEMAS, NetworkConfig
+from .agents.config import (
+    AGENT_SCHEMAS,
+    BUILTIN_SCHEMAS,
+    NetworkConfig,
+    add_schema,
+    import_object,
+    load_entry_points,
+)
 from .env.config import MDPConfig, StateConfig
 from .evaluation.config import EvalConfig
 from .experiments.config import (
@@ -100,6 +108,66 @@ def user_options_help() -> str:
     return f"\nYour own, from ./conf (conf/README.md):\n{lines}"
 
 
+SCHEMA_KEY = "_schema_"  # a user's agent YAML naming its schema class (docs/ADD_A_POLICY.md)
+
+
+def user_agent_schemas(root: Path = USER_CONF) -> dict[str, type]:
+    """The schemas that the users' own agent YAML files name (``_schema_: module.Class``,
+    imported with the working directory on the import path), added to the agents
+    (:func:`~fleet_torchrl.agents.config.add_schema`); by file name. A class that cannot be
+    imported or is no agent schema raises :class:`ConfigError` naming the file."""
+    import sys
+
+    out = {}
+    for stem in user_options(root).get("agent", []):
+        path = root / "agent" / f"{stem}.yaml"
+        node = OmegaConf.load(path)
+        target = node.get(SCHEMA_KEY) if isinstance(node, DictConfig) else None
+        if target is None:
+            continue
+        if str(Path.cwd()) not in sys.path and "" not in sys.path:
+            sys.path.append(str(Path.cwd()))  # a module beside conf/ (console scripts too)
+        where = f"{path}: {SCHEMA_KEY}"
+        schema = import_object(str(target), where)
+        add_schema(schema, f"{where}={target!r}")
+        out[stem] = schema
+    return out
+
+
+def typed_user_agent(cfg: DictConfig) -> DictConfig:
+    """A composed config whose ``agent`` a user's YAML filled naming its schema
+    (``_schema_``, :func:`user_agent_schemas`) with that ``agent`` typed by the schema: a
+    key the schema lacks or a value of the wrong type is refused in one line, as for any
+    group."""
+    agent = cfg.get("agent") if "agent" in cfg else None
+    if not isinstance(agent, DictConfig) or SCHEMA_KEY not in agent:
+        return cfg
+    target = str(agent[SCHEMA_KEY])
+    schema = import_object(target, f"agent.{SCHEMA_KEY}")
+    add_schema(schema, f"agent.{SCHEMA_KEY}={target!r}")
+    values = OmegaConf.to_container(agent, resolve=False)
+    values.pop(SCHEMA_KEY)
+    known = {f.name for f in fields(schema)}
+    for key in values:
+        if key not in known:
+            raise ConfigError(f"agent.{key} is not a setting of agent (allowed: "
+                              f"{', '.join(sorted(known))})")
+    from omegaconf.errors import OmegaConfBaseException
+
+    try:
+        with deferred_validation():
+            node = OmegaConf.merge(OmegaConf.structured(schema), values)
+    except OmegaConfBaseException as e:
+        key = str(getattr(e, "key", None) or "")
+        what = f"agent.{key}={values[key]!r}" if key in values else "agent"
+        raise ConfigError(f"{what} is invalid: {one_line(e)}") from None
+    from omegaconf import open_dict, read_write
+
+    with read_write(cfg), open_dict(cfg):
+        cfg.agent = node
+    return cfg
+
+
 RUN_PID = "FLEET_TORCHRL_RUN_PID"  # the pid of the command whose multirun this process runs
 
 
@@ -165,8 +233,12 @@ def register_configs() -> None:
                               ("eval", EvalConfig), ("network", NetworkConfig),
                               ("train", TrainConfig)):
             cs.store(name=f"schema_{group}", node=schema)
+        outside = load_entry_points()  # agents of other packages: agent=<name> needs no YAML
+        user_agent_schemas()
         for name, schema in AGENT_SCHEMAS.items():
             cs.store(name=f"schema_agent_{name}", node=schema)
+            if name in outside and name not in BUILTIN_SCHEMAS:
+                cs.store(group="agent", name=name, node=schema)
         # the primary configs of the commands that only read result files (conf/<command>.yaml)
         for name, schema in TOOL_SCHEMAS.items():
             cs.store(name=f"schema_{name}", node=schema)
@@ -203,13 +275,13 @@ def validate(cfg: Config, groups: Iterable[str] = GROUPS) -> Config:
 def validate_spec(cfg: Config) -> Any:
     """The checks of the run spec's groups (site, state, mdp, agent, network, train) and the
     seed, what every command reads; returns the agent's registry entry."""
-    from .agents.registry import AGENTS, get_agent  # the builders: torch, TorchRL
+    from .agents.registry import get_agent, sync_agents  # the builders: torch, TorchRL
 
     check_name("site.name", cfg.site.name)  # a part of run folders and policy names
     cfg.site.validate()
     cfg.state.validate()
     cfg.mdp.validate()
-    check_choice("agent.name", getattr(cfg.agent, "name", None), tuple(AGENTS))
+    check_choice("agent.name", getattr(cfg.agent, "name", None), tuple(sync_agents()))
     spec = get_agent(cfg.agent.name)
     if not isinstance(cfg.agent, spec.schema):
         raise ConfigError(f"agent.name={cfg.agent.name!r} does not match its settings: compose "
@@ -383,6 +455,7 @@ def to_config(cfg: DictConfig | Config, groups: Iterable[str] = GROUPS) -> Confi
     (:func:`validate`); a key the schema does not have (e.g. ``+site.pc=0.5``, a misspelt
     ``site.p_c``) is rejected, naming it."""
     if isinstance(cfg, DictConfig):
+        cfg = typed_user_agent(cfg)
         bad = unknown_keys(cfg)
         if bad:
             raise ConfigError(bad[0])

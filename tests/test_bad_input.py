@@ -825,7 +825,7 @@ def test_a_spec_too_large_is_refused_before_anything_is_allocated(tmp_path, save
     because the stored tensors are not of its shapes."""
     import time
 
-    from fleet_torchrl.agents import dqn
+    from fleet_torchrl.agents.dqn import learner as dqn
 
     built = []
     real = dqn.relu_mlp
@@ -1526,3 +1526,43 @@ def test_a_bad_setting_of_a_group_a_command_does_not_read_is_ignored(workdir, co
     before = snapshot(workdir)
     assert command(sweeps.main, "sweep.param=bogus", f"hydra.run.dir={workdir / 'run2'}") == 2
     assert snapshot(workdir) == before
+
+
+# ---- agents from outside: an entry point or a user's conf/agent YAML naming a schema
+def _broken_entry_point(w: Path) -> None:
+    info = w / "lib" / "broken_agent-0.1.dist-info"
+    info.mkdir(parents=True)
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: broken_agent\nVersion: 0.1\n")
+    (info / "entry_points.txt").write_text(
+        "[fleet_torchrl.agents]\nbroken = broken_agent.config:Nope\n")
+
+
+def _no_schema_yaml(w: Path) -> None:
+    (w / "conf" / "agent").mkdir(parents=True)
+    (w / "conf" / "agent" / "odd.yaml").write_text("_schema_: collections:OrderedDict\n")
+
+
+OUTSIDE_AGENTS = [
+    (_broken_entry_point, "error: the entry point broken = broken_agent.config:Nope (group "
+     "fleet_torchrl.agents) cannot be imported: ModuleNotFoundError: No module named "
+     "'broken_agent'; fix or uninstall its package"),
+    (_no_schema_yaml, "error: conf/agent/odd.yaml: _schema_='collections:OrderedDict' is "
+     "invalid: allowed a dataclass extending fleet_torchrl.agents.AgentConfig (the agent's "
+     "schema), not <class 'collections.OrderedDict'>"),
+]
+
+
+@pytest.mark.parametrize("make,msg", OUTSIDE_AGENTS, ids=["entry point", "conf yaml"])
+def test_an_agent_from_outside_that_is_no_agent_is_one_line(make, msg, tmp_path):
+    """Every command refuses to start, in one line naming where the agent came from, and
+    writes nothing."""
+    make(tmp_path)
+    before = snapshot(tmp_path)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+        [str(tmp_path / "lib"), str(Path(__file__).resolve().parents[1]),
+         os.environ.get("PYTHONPATH", "")])}
+    r = subprocess.run([sys.executable, "-m", "fleet_torchrl.evaluate", "agent=rule"],
+                       cwd=tmp_path, capture_output=True, text=True, timeout=300, env=env)
+    assert r.returncode == 2, r.stderr[-2000:]
+    assert r.stderr.strip().splitlines() == [msg]
+    assert snapshot(tmp_path) == before

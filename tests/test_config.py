@@ -282,8 +282,18 @@ def test_a_site_name_of_the_python_api_is_one_path_part():
 
 # The schemas whose fields check their own ranges in code (the fields' declarations are the
 # rule, utils/checks.py: ranged), and the numeric fields checked in code by reason.
-UNDECLARED_MODULES = {"fleet_torchrl.agents.config": "the agent and network schemas"}
+UNDECLARED_MODULES: dict[str, str] = {}
 RANGE_IN_CODE = {
+    ("TabularAgentConfig", "eps_end"): "its bound is eps_start",
+    ("DQNAgentConfig", "eps_end"): "its bound is eps_start",
+    ("NetworkConfig", "batch_size"): "its bound is buffer_size",
+    ("SearchAgentConfig", "elite"): "its bound is population - 1",
+    ("SearchAgentConfig", "sigma_init"): "null stands for the policy class's default",
+    ("SearchAgentConfig", "sigma_min"): "its bound is sigma_init",
+    ("ImitationAgentConfig", "beta_end"): "its bound is beta_start",
+    ("ImitationAgentConfig", "iterate_from"): "its bound is rounds",
+    ("ImitationAgentConfig", "batch_size"): "its bound is capacity",
+    ("ImitationAgentConfig", "gap_floor"): "its bound is gap_cap",
     ("Config", "seed"): "the root's, checked by config.validate",
     ("SiteConfig", "n_vehicles"): "its bound is n_nodes - 2",
     ("SiteConfig", "closed_node"): "its bound is n_nodes - 1",

@@ -16,9 +16,6 @@ MONTHS = ("January|February|March|April|May|June|July|August|September|October|N
 DATE = re.compile(rf"\b\d{{4}}-\d{{2}}-\d{{2}}\b|\b(?:{MONTHS})\.?\s+(?:\d{{1,2}},?\s+)?\d{{4}}\b",
                   re.I)
 LINK = re.compile(r"!?\[[^\]]*\]\(([^)\s]+)(?:\s+\"[^\"]*\")?\)")
-# docs/ADD_A_POLICY.md is written on another branch of the same change; until it is merged
-# the README's link to it is the one allowed to point at nothing
-PENDING = {"docs/ADD_A_POLICY.md"}
 
 
 def _headings(text: str) -> list[str]:
@@ -73,8 +70,7 @@ def test_relative_links_point_to_files_that_exist(page):
         if not path or re.match(r"[a-z][a-z0-9+.-]*:", path, re.I):
             continue
         target = (page.parent / path).resolve()
-        rel = target.relative_to(ROOT).as_posix() if target.is_relative_to(ROOT) else path
-        if not target.exists() and rel not in PENDING:
+        if not target.exists():
             broken.append(url)
     assert not broken, f"{page.relative_to(ROOT)}: links to missing files {broken}"
 

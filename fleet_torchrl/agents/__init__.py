@@ -1,6 +1,8 @@
 """Agents: the policy/learner interface, the baselines, the learners and their registry.
-The schemas (``agents/config.py``) import at once; the rest on first use
-(:mod:`fleet_torchrl.utils.lazy`)."""
+
+One subpackage per agent (``agents/<agent>/``): its schema (``config.py``, free of torch)
+beside its implementation. The schemas (collected in ``agents/config.py``) import at once;
+the rest on first use (:mod:`fleet_torchrl.utils.lazy`). docs/ADD_A_POLICY.md adds one."""
 
 from typing import TYPE_CHECKING
 

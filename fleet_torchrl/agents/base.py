@@ -86,6 +86,16 @@ class Policy(nn.Module):
         """The policy :meth:`policy_spec` describes (its weights are loaded afterwards)."""
         return cls(**spec)
 
+    @classmethod
+    def from_agent(cls, agent: Any) -> Policy:
+        """A baseline's policy from its ``agent`` config: ``from_config(agent)`` where the
+        class has one, else its constructor with the config's fields of the same names."""
+        make = getattr(cls, "from_config", None)
+        if make is not None:
+            return make(agent)
+        params = inspect.signature(cls.__init__).parameters
+        return cls(**{k: getattr(agent, k) for k in params if k != "self" and hasattr(agent, k)})
+
     def td_module(self, obs_key: str, action_key: str, action_spec: Any) -> TensorDictModuleBase:
         """This policy as a TensorDict module (:func:`as_td_module`): a :class:`PolicyModule`;
         a policy with Q-values returns a Q-value actor over ``action_spec``."""
@@ -243,6 +253,14 @@ class Learner(nn.Module, ABC):
     evaluate_start: bool = False  # True: the training loop also evaluates the start policy
     # the TensorBoard tag of exploration(): epsilon for the Q-learners, the search's spread
     exploration_tag: ClassVar[str] = "train/epsilon"
+
+    @classmethod
+    def from_context(cls, context: Any) -> Learner:
+        """The learner a :class:`~fleet_torchrl.agents.registry.LearnerContext` describes
+        (the agent's and the other groups' configs, seed, budget, device, environment): how
+        the registry builds the learner its schema's ``learner_type`` names."""
+        raise NotImplementedError(f"{cls.__name__}.from_context: a learner builds itself "
+                                  "from a LearnerContext")
 
     def start_round(self, round_idx: int) -> None:  # noqa: B027 (optional hook)
         """Called before the first step of round ``round_idx`` (0-based)."""

@@ -1,13 +1,16 @@
-"""The one place that maps agent names to their schema, policy class and builder.
+"""The agents by name: each one's schema, policy class and how to build it.
 
-Adding a learner is its schema in ``agents/config.py`` (free of torch, so that composing a
-config stays fast), one module (policy, :class:`~fleet_torchrl.agents.base.Learner`), one
-``fleet_torchrl/conf/agent/<name>.yaml`` and one :func:`register` call below; nothing else
-switches on agent names. Baselines are entries with ``make_policy`` (built from their
-config); learners are entries with ``make_learner`` (built from a :class:`LearnerContext`,
-the explicit group configs a learner needs; their policies are loaded from files). Where
-policies are published and found (names, folders) is :mod:`fleet_torchrl.store`'s business,
-above this layer: nothing here reads the root config.
+An agent is declared on its schema (:class:`~fleet_torchrl.agents.schema.AgentConfig`:
+``policy_type``, ``learner_type``, ``states``), which sits beside its implementation
+(``agents/<agent>/config.py``) and stays free of torch; :data:`AGENTS` builds one
+:class:`AgentSpec` per schema of :data:`~fleet_torchrl.agents.config.AGENT_SCHEMAS` (the
+package's own, the entry-point group ``fleet_torchrl.agents``, a user's ``conf/agent`` YAML
+naming its class: docs/ADD_A_POLICY.md), and nothing else switches on agent names.
+Baselines are built from their config (``Policy.from_agent``); learners from a
+:class:`LearnerContext`, the explicit group configs a learner needs
+(``Learner.from_context``), and their policies are loaded from files. Where policies are
+published and found (names, folders) is :mod:`fleet_torchrl.store`'s business, above this
+layer: nothing here reads the root config.
 """
 
 from __future__ import annotations
@@ -26,27 +29,8 @@ from ..sim import Site, SiteConfig
 from ..sim.config import MAX_NODES
 from ..utils.checks import ConfigError
 from .base import Learner, Policy
-from .baselines import HeuristicPolicy, RulePolicy
-from .config import (
-    AGENT_SCHEMAS,
-    BASELINE_BASES,
-    AgentConfig,
-    DQNAgentConfig,
-    HeuristicAgentConfig,
-    ImitationAgentConfig,
-    PlannerAgentConfig,
-    RuleAgentConfig,
-    SearchAgentConfig,
-    TabularAgentConfig,
-    ThresholdAgentConfig,
-)
-from .dqn import DQNLearner, DQNPolicy
-from .imitation import ImitationLearner, ImitationPolicy
-from .planner import PlannerPolicy
+from .config import AGENT_SCHEMAS, AgentConfig, load_entry_points
 from .policy_files import POLICY_FILE, read_policy_file, save_policy
-from .search import SearchLearner, SearchPolicy
-from .tabular import TabularLearner, TabularQPolicy
-from .threshold import ThresholdPolicy
 
 
 @dataclass(frozen=True)
@@ -86,6 +70,24 @@ class AgentSpec:
     def trainable(self) -> bool:
         return self.make_learner is not None
 
+    @classmethod
+    def from_schema(cls, name: str, schema: type[AgentConfig]) -> AgentSpec:
+        """The entry a schema declares (its classes imported here)."""
+        policy_class = schema.associated_class()
+        learner_class = schema.learner_class()
+        where = f"{schema.__module__}.{schema.__qualname__}"
+        if not (isinstance(policy_class, type) and issubclass(policy_class, Policy)):
+            raise ConfigError(f"{where}.policy_type={schema.policy_type!r} is invalid: "
+                              "allowed a subclass of fleet_torchrl.agents.Policy")
+        if learner_class is None:
+            return cls(name, schema, policy_class, make_policy=policy_class.from_agent,
+                       states=schema.states)
+        if not (isinstance(learner_class, type) and issubclass(learner_class, Learner)):
+            raise ConfigError(f"{where}.learner_type={schema.learner_type!r} is invalid: "
+                              "allowed a subclass of fleet_torchrl.agents.Learner")
+        return cls(name, schema, policy_class, make_learner=learner_class.from_context,
+                   states=schema.states)
+
 
 AGENTS: dict[str, AgentSpec] = {}
 
@@ -98,7 +100,18 @@ def register(spec: AgentSpec) -> AgentSpec:
     return spec
 
 
+def sync_agents() -> dict[str, AgentSpec]:
+    """:data:`AGENTS` with an entry for every schema added since (entry points, a user's
+    ``conf/agent`` YAML naming its class); returns it."""
+    load_entry_points()
+    for name, schema in list(AGENT_SCHEMAS.items()):
+        if name not in AGENTS or AGENTS[name].schema is not schema:
+            register(AgentSpec.from_schema(name, schema))
+    return AGENTS
+
+
 def get_agent(name: str) -> AgentSpec:
+    sync_agents()
     try:
         return AGENTS[name]
     except KeyError:
@@ -106,34 +119,7 @@ def get_agent(name: str) -> AgentSpec:
                          f"{', '.join(AGENTS)}") from None
 
 
-# ------------------------------------------------------------------------ the entries
-def _tabular_learner(c: LearnerContext) -> Learner:
-    return TabularLearner(k=c.agent.k, gamma=c.mdp.discount, agent=c.agent,
-                          mdp=c.mdp).to(c.device)
-
-
-def _dqn_learner(c: LearnerContext) -> Learner:
-    return DQNLearner(c.agent, c.network, c.n_obs, c.state, c.action_spec, c.mdp, c.device,
-                      total_updates=c.rounds * c.agent.updates_per_round)
-
-
-def _search_learner(c: LearnerContext) -> Learner:
-    init = c.agent.init
-    if init == "uniform":
-        start = None
-    else:  # a baseline or a saved policy: it must read the partial state the classes read
-        start = base_policy(init)
-        if start.encoding != "partial":
-            raise ValueError(f"agent.init={init!r}: a {start.encoding!r}-state policy cannot "
-                             "start a search over partial-state policies")
-    return SearchLearner(c.agent, c.site, c.seed, start).to(c.device)
-
-
-register(AgentSpec("rule", RuleAgentConfig, RulePolicy, make_policy=RulePolicy.from_config))
-register(AgentSpec("heuristic", HeuristicAgentConfig, HeuristicPolicy,
-                   make_policy=HeuristicPolicy.from_config))
-register(AgentSpec("threshold", ThresholdAgentConfig, ThresholdPolicy,
-                   make_policy=ThresholdPolicy.from_config))
+sync_agents()
 
 
 def base_policy(name: str, device: str | torch.device = "cpu") -> Policy:
@@ -143,35 +129,6 @@ def base_policy(name: str, device: str | torch.device = "cpu") -> Policy:
     if spec is not None and not spec.trainable:
         return spec.make_policy(spec.schema()).to(device)
     return load_policy_file(name, device)
-
-
-def _planner(agent: PlannerAgentConfig) -> Policy:
-    for b in agent.all_bases():
-        assert b in BASELINE_BASES or Path(b).exists(), b
-    return PlannerPolicy.from_config(agent, base_policy(agent.base),
-                                     [base_policy(b) for b in agent.bases])
-
-
-register(AgentSpec("planner", PlannerAgentConfig, PlannerPolicy, make_policy=_planner))
-register(AgentSpec("tabular", TabularAgentConfig, TabularQPolicy, make_learner=_tabular_learner,
-                   states=("partial",)))
-register(AgentSpec("dqn", DQNAgentConfig, DQNPolicy, make_learner=_dqn_learner))
-register(AgentSpec("search", SearchAgentConfig, SearchPolicy, make_learner=_search_learner,
-                   states=("partial",)))
-
-
-def _imitation_learner(c: LearnerContext) -> Learner:
-    if c.env is None:
-        raise ValueError("agent=imitation labels the states of the training environment: "
-                         "build it with LearnerContext(env=...)")
-    expert = _planner(c.agent.expert).to(c.device)
-    return ImitationLearner(c.agent, expert, c.env, c.n_obs, c.state, c.seed, c.device)
-
-
-register(AgentSpec("imitation", ImitationAgentConfig, ImitationPolicy,
-                   make_learner=_imitation_learner,
-                   states=("partial", "partial_site", "all", "all_site",
-                           "partial_all_site")))
 
 
 # ------------------------------------------------------------------------ lookups

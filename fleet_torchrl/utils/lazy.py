@@ -37,3 +37,25 @@ def globals_of(package: str) -> dict[str, Any]:
     import sys
 
     return vars(sys.modules[package])
+
+
+def lazy_module(package: str, module: str
+                ) -> tuple[Callable[[str], Any], Callable[[], list[str]]]:
+    """``__getattr__`` and ``__dir__`` for ``package`` that offer every public name of its
+    submodule ``module`` (relative, e.g. ``".learner"``), imported on first access: a
+    package whose light modules (its schema) import at once and whose heavy one waits."""
+
+    def __getattr__(name: str) -> Any:
+        if name.startswith("__"):
+            raise AttributeError(f"module {package!r} has no attribute {name!r}")
+        try:
+            value = getattr(importlib.import_module(module, package), name)
+        except AttributeError:
+            raise AttributeError(f"module {package!r} has no attribute {name!r}") from None
+        globals_of(package)[name] = value
+        return value
+
+    def __dir__() -> list[str]:
+        return sorted(globals_of(package))
+
+    return __getattr__, __dir__

@@ -5,10 +5,10 @@ from __future__ import annotations
 
 from torch import Tensor
 
-from ..sim.fused import KernelPolicy
-from .base import Policy
+from ...sim.fused import KernelPolicy
+from ..base import Policy
+from ..threshold.policy import threshold_kernel_policy
 from .config import HeuristicAgentConfig, RuleAgentConfig
-from .threshold import threshold_kernel_policy
 
 
 class RulePolicy(Policy):

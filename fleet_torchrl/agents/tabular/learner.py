@@ -11,13 +11,15 @@ the first of them -- the sequential rule up to the order of simultaneous visits.
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 from tensordict import TensorDictBase
 from torch import Tensor
 
-from ..env import MDPConfig, discount_exponent
-from ..sim.fused import TABLE, KernelPolicy
-from .base import Learner, Policy
+from ...env import MDPConfig, discount_exponent
+from ...sim.fused import TABLE, KernelPolicy
+from ..base import Learner, Policy
 from .config import TabularAgentConfig
 
 N_SOC_BINS = 10
@@ -85,6 +87,10 @@ class TabularLearner(Learner):
     """
 
     steps_per_round = None
+
+    @classmethod
+    def from_context(cls, c: Any) -> TabularLearner:
+        return cls(k=c.agent.k, gamma=c.mdp.discount, agent=c.agent, mdp=c.mdp).to(c.device)
 
     def __init__(self, k: float = 100.0, gamma: float = 0.9,
                  agent: TabularAgentConfig | None = None, mdp: MDPConfig | None = None) -> None:

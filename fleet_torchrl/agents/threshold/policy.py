@@ -29,8 +29,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..sim.fused import THRESHOLD, KernelPolicy
-from .base import Policy
+from ...sim.fused import THRESHOLD, KernelPolicy
+from ..base import Policy
 from .config import ThresholdAgentConfig
 
 # the order of a kernel row (sim/kernel.py: THR_*)

@@ -70,13 +70,13 @@ from tensordict import TensorDict, TensorDictBase
 from torch import Tensor, nn
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
-from ..sim import Site, SiteState, rng
-from ..sim.rollout import DecisionContext
-from ..utils.checks import ConfigError, check_range
-from .base import INT, REAL, STR, Learner, Policy, check_spec_fields, guard_actions, relu_mlp
-from .baselines import HeuristicPolicy
+from ...sim import Site, SiteState, rng
+from ...sim.rollout import DecisionContext
+from ...utils.checks import ConfigError, check_range
+from ..base import INT, REAL, STR, Learner, Policy, check_spec_fields, guard_actions, relu_mlp
+from ..baselines.policy import HeuristicPolicy
+from ..planner.policy import PlannerPolicy
 from .config import ImitationAgentConfig
-from .planner import PlannerPolicy
 
 
 class ImitationPolicy(Policy):
@@ -181,6 +181,15 @@ class ImitationLearner(Learner):
     separate checkpoint component (its own generator for the minibatches inside)."""
 
     reset_each_round = False  # episodes run on: a round's states are not all near a reset
+
+    @classmethod
+    def from_context(cls, c: Any) -> ImitationLearner:
+        """The teacher is the planner ``agent.expert`` describes, over its bases."""
+        if c.env is None:
+            raise ValueError("agent=imitation labels the states of the training environment: "
+                             "build it with LearnerContext(env=...)")
+        expert = PlannerPolicy.from_agent(c.agent.expert).to(c.device)
+        return cls(c.agent, expert, c.env, c.n_obs, c.state, c.seed, c.device)
 
     def __init__(self, agent: ImitationAgentConfig, expert: Policy, env: Any, n_obs: int,
                  encoding: str, seed: int = 0, device: torch.device | str = "cpu") -> None:

@@ -48,8 +48,8 @@ from torchrl.data import (
 from torchrl.modules import EGreedyModule, QValueActor, SafeSequential
 from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate
 
-from ..env import MDPConfig, discount_exponent
-from ..utils.checks import (
+from ...env import MDPConfig, discount_exponent
+from ...utils.checks import (
     ConfigError,
     check_choice,
     check_known_fields,
@@ -57,8 +57,8 @@ from ..utils.checks import (
     check_types,
     deferred_validation,
 )
-from .base import INT, REAL, STR, Learner, Policy, check_spec_fields, relu_mlp
-from .baselines import HeuristicPolicy
+from ..base import INT, REAL, STR, Learner, Policy, check_spec_fields, relu_mlp
+from ..baselines.policy import HeuristicPolicy
 from .config import ANCHORS, DQNAgentConfig, NetworkConfig
 
 
@@ -239,6 +239,11 @@ class DQNLearner(Learner):
 
     KEYS = ("observation", "action", "ticks", ("next", "observation"), ("next", "reward"),
             ("next", "done"), ("next", "terminated"), ("next", "truncated"), ("next", "ticks"))
+
+    @classmethod
+    def from_context(cls, c: Any) -> DQNLearner:
+        return cls(c.agent, c.network, c.n_obs, c.state, c.action_spec, c.mdp, c.device,
+                   total_updates=c.rounds * c.agent.updates_per_round)
 
     def __init__(self, agent: DQNAgentConfig, net: NetworkConfig, n_obs: int, encoding: str,
                  action_spec: TensorSpec, mdp: MDPConfig, device: torch.device | str,

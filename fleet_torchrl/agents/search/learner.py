@@ -51,16 +51,16 @@ import torch
 from tensordict import TensorDictBase
 from torch import Tensor
 
-from ..env.encodings import get_encoding
-from ..sim import SiteConfig
-from ..sim import rng as _rng
-from ..sim.fused import TABLE, THRESHOLD, KernelPolicy
-from ..sim.rollout import run_sites
-from ..utils.checks import check_choice, check_range
-from .base import INT, STR, Learner, Policy, check_spec_fields
+from ...env.encodings import get_encoding
+from ...sim import SiteConfig
+from ...sim import rng as _rng
+from ...sim.fused import TABLE, THRESHOLD, KernelPolicy
+from ...sim.rollout import run_sites
+from ...utils.checks import check_choice, check_range
+from ..base import INT, STR, Learner, Policy, check_spec_fields
+from ..tabular.learner import N_SOC_BINS, n_cells, state_index
+from ..threshold.policy import ThresholdPolicy, threshold_actions, threshold_row
 from .config import POLICY_CLASSES, SearchAgentConfig
-from .tabular import N_SOC_BINS, n_cells, state_index
-from .threshold import ThresholdPolicy, threshold_actions, threshold_row
 
 N_FEATURES = 3  # the partial encoding
 
@@ -223,6 +223,22 @@ class SearchLearner(Learner):
     reset_each_round = False
     evaluate_start = True  # the start (e.g. a seeded policy) competes for the best snapshot
 
+    @classmethod
+    def from_context(cls, c: Any) -> SearchLearner:
+        """Starts from ``agent.init``: uniform, a baseline or a saved policy, which must read
+        the partial state the classes read."""
+        from ..registry import base_policy
+
+        init = c.agent.init
+        if init == "uniform":
+            start = None
+        else:
+            start = base_policy(init)
+            if start.encoding != "partial":
+                raise ValueError(f"agent.init={init!r}: a {start.encoding!r}-state policy "
+                                 "cannot start a search over partial-state policies")
+        return cls(c.agent, c.site, c.seed, start).to(c.device)
+
     def __init__(self, agent: SearchAgentConfig, site_cfg: SiteConfig, seed: int,
                  init_policy: Policy | None = None) -> None:
         super().__init__()
@@ -360,7 +376,7 @@ def threshold_start(policy: Policy | None) -> Tensor:
     """The thresholds a threshold-class search starts from: the start policy's own (the
     rule, the heuristic, a threshold policy), else the heuristic's; rules a policy does not
     use are set just off (finite, so the Gaussian can move them on)."""
-    from .baselines import HeuristicPolicy, RulePolicy
+    from ..baselines.policy import HeuristicPolicy, RulePolicy
 
     if isinstance(policy, ThresholdPolicy):
         row = policy.theta.clone()

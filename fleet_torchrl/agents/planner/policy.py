@@ -42,7 +42,7 @@ the better action:
   deciding site the absolute difference between the mean scores of the two actions (the
   pair compared above), ``inf`` where one fails in more futures, and 0 for the sites that
   did not decide: what taking the wrong action is estimated to cost, which the distilled
-  student can weight its labels by (``agent.label_weight=gap``, agents/imitation.py).
+  student can weight its labels by (``agent.label_weight=gap``, agents/imitation/learner.py).
 
 So the planner with base ``P`` is one step of policy improvement over ``P``: where it
 gains significantly over ``P``, ``P`` was not optimal (``make table`` and the sweeps report
@@ -59,13 +59,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from pathlib import Path
 
 import torch
 from torch import Tensor, nn
 
-from ..sim import D, Site, SiteState, rng
-from ..sim.rollout import DecisionContext, advance
-from .base import Policy
+from ...sim import D, Site, SiteState, rng
+from ...sim.rollout import DecisionContext, advance
+from ..base import Policy
 from .config import BASELINE_BASES, OTHER_UNDER, PlannerAgentConfig
 
 
@@ -269,6 +270,16 @@ class PlannerPolicy(Policy):
                     bases: Sequence[Policy] = ()) -> PlannerPolicy:
         return cls(base, agent.rollouts, agent.horizon, agent.energy_value, agent.confidence,
                    agent.seed, bases, agent.other_under)
+
+    @classmethod
+    def from_agent(cls, agent: PlannerAgentConfig) -> PlannerPolicy:
+        """The planner over the bases ``agent`` names (baselines or saved policies)."""
+        from ..registry import base_policy
+
+        for b in agent.all_bases():
+            assert b in BASELINE_BASES or Path(b).exists(), b
+        return cls.from_config(agent, base_policy(agent.base),
+                               [base_policy(b) for b in agent.bases])
 
 
 __all__ = ["BASELINE_BASES", "OTHER_UNDER", "PlannerAgentConfig", "PlannerPolicy"]

@@ -1,0 +1,11 @@
+"""The rollout planner.
+
+Its schema (``config.py``, free of torch) imports at once; its implementation
+(``policy.py``) on first use of one of its names."""
+
+from ...utils.lazy import lazy_module
+from .config import BASELINE_BASES, OTHER_UNDER, PlannerAgentConfig
+
+__getattr__, __dir__ = lazy_module(__name__, ".policy")
+
+__all__ = ["BASELINE_BASES", "OTHER_UNDER", "PlannerAgentConfig"]
