@@ -133,7 +133,7 @@ def test_a_user_yaml_naming_its_schema_adds_a_policy(user_agent):
     assert type(cfg.agent).__name__ == "MyLowConfig" and cfg.agent.name == "my_low"
     assert cfg.agent.below == 20.0  # the YAML's value over the schema's default
     assert compose_config(["agent=low20", "agent.below=25"]).agent.below == 25.0
-    policy = make_policy(cfg)
+    policy = make_policy(cfg, "cpu", cfg.table.policies_dir)
     assert type(policy).__name__ == "LowPolicy" and policy.below == 20.0
     trips = simulate(policy, SiteConfig(), 4, 300, 0)["trips"].tolist()
     assert trips == rule_trips(20.0, 4, 300)
