@@ -1,6 +1,6 @@
-"""Training throughput of DQN collected by the training loop itself against the same
-training collected through TorchRL's ``Collector`` (docs/ARCHITECTURE.md); a development
-tool of this repository, not part of the package.
+"""Training throughput of DQN stepped by the training loop itself against the same training
+collected through TorchRL's ``Collector`` (:mod:`fleet_torchrl.training.collect`, what
+training uses); a development tool of this repository, not part of the package.
 
     python benchmarks/bench_collector.py [REPEATS] [ROUNDS] [NUM_SITES] [STEPS] [UPDATES]
 

@@ -53,7 +53,7 @@ def test_the_planner_study_rows_pair_the_planner_with_its_base():
 
 
 def test_the_collector_benchmark_pairs_runs_that_do_the_same_work(capsys):
-    """benchmarks/bench_collector.py (docs/ARCHITECTURE.md): DQN rounds stepped by the
+    """benchmarks/bench_collector.py: DQN rounds stepped by the
     training loop and collected by TorchRL's Collector, alternated; the two did the same
     work (frames, gradient steps, epsilon and weights, checked bit for bit) or it fails."""
     import torch

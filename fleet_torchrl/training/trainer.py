@@ -11,7 +11,8 @@ A round is ``learner.start_round``, then environment steps (``learner.act`` -> `
   a site whose episode is done stops learning, and the round ends when all are done;
 * a learner with ``steps_per_round = n`` (DQN) plays ``n`` steps of all sites, a site whose
   episode ends starting its next one at once (``env.step_and_maybe_reset``, as TorchRL's
-  collectors do);
+  collectors do); a learner that ``collects`` (DQN) gets these steps from TorchRL's
+  ``Collector`` (:meth:`Trainer.collect_round`, :mod:`fleet_torchrl.training.collect`);
 * a learner with ``steps_per_round = 0`` (the direct search) takes no environment step: its
   ``update`` simulates what it needs (a generation).
 
