@@ -10,11 +10,12 @@ threads: ``loop``, ``Trainer.play_round`` stepping the environment (``learner.ac
 ``env.step_and_maybe_reset``, ``learner.observe``), and ``collector``, a ``Collector`` with
 the learner's exploring policy and ``frames_per_batch = NUM_SITES x STEPS``
 (:class:`fleet_torchrl.training.collect.CollectedRounds`), feeding the same replay buffer and
-``DQNLoss`` updates (``learner.update``). A run builds the environment and the learner, plays
-one warm-up round (the replay buffer fills, the kernel loads), then times ``ROUNDS`` rounds:
-environment steps of all sites per second, the learner's ``UPDATES`` gradient steps per round
-included. Runs alternate between the two (a drift of the machine hits both); each prints its
-figure, then the medians and their spread. Both ways must do the same work: the frames, the
+``DQNLoss`` updates (``learner.update``). A pair of runs builds each way's environment
+and learner and plays one warm-up round of each (the replay buffer fills, the kernel loads),
+then times ``ROUNDS`` rounds of each, alternating round by round (a change of the machine's
+load hits both): decisions (environment steps of every site) per second, the learner's
+``UPDATES`` gradient steps per round included. Each pair prints its two figures, then come
+the medians and their spread. Both ways must do the same work: the frames, the
 gradient steps, epsilon and the Q-network's weights at the end of each pair of runs are
 compared (bit for bit) and a difference ends the benchmark with exit code 1.
 
@@ -75,21 +76,35 @@ def play_rounds(env: Any, learner: Any, collects: bool) -> Any:
 WAYS = {"loop": False, "collector": True}  # learner.collects
 
 
-def run(way: str, rounds: int, num_sites: int, steps: int, updates: int
-        ) -> tuple[float, dict[str, Any]]:
-    """Decisions (environment steps of every site) per second of ``rounds`` timed rounds
-    after one warm-up round, and what the run did (frames, gradient steps, epsilon, the
-    Q-network's weights)."""
-    env, learner = make(num_sites, steps, updates, rounds)
-    play = play_rounds(env, learner, WAYS[way])
-    frames = play()["frames"]
-    t0 = time.perf_counter()
-    timed = sum(play()["frames"] for _ in range(rounds))
-    dt = time.perf_counter() - t0
-    work = {"frames": frames + timed, "updates": _gradient_steps(learner),
-            "epsilon": learner.exploration(),
-            "weights": {k: v.clone() for k, v in learner.qnet.state_dict().items()}}
-    return timed / dt, work
+def run_pair(rounds: int, num_sites: int, steps: int, updates: int, loop_first: bool
+             ) -> tuple[dict[str, float], dict[str, dict[str, Any]]]:
+    """Both ways side by side: each builds its environment and learner and plays one
+    warm-up round, then their ``rounds`` timed rounds alternate (the order flipping each
+    round), so that a change of the machine's load hits both alike. Returns each way's
+    decisions (environment steps of every site) per second of its timed rounds, and what it
+    did (frames, gradient steps, epsilon, the Q-network's weights). Each way keeps its own
+    global random state, as if it ran alone."""
+    order = list(WAYS) if loop_first else list(reversed(list(WAYS)))
+    play, rng, frames, spent = {}, {}, {}, {}
+    learners = {}
+    for way in order:
+        env, learners[way] = make(num_sites, steps, updates, rounds)
+        play[way] = play_rounds(env, learners[way], WAYS[way])
+        frames[way], spent[way] = play[way]()["frames"], 0.0
+        rng[way] = torch.get_rng_state()
+    for r in range(rounds):
+        for way in (order if r % 2 == 0 else order[::-1]):
+            torch.set_rng_state(rng[way])
+            t0 = time.perf_counter()
+            frames[way] += play[way]()["frames"]
+            spent[way] += time.perf_counter() - t0
+            rng[way] = torch.get_rng_state()
+    fps = {way: (frames[way] - num_sites * steps) / spent[way] for way in order}
+    work = {way: {"frames": frames[way], "updates": _gradient_steps(lrn),
+                  "epsilon": lrn.exploration(),
+                  "weights": {k: v.clone() for k, v in lrn.qnet.state_dict().items()}}
+            for way, lrn in learners.items()}
+    return fps, work
 
 
 def _gradient_steps(learner: Any) -> int:
@@ -124,14 +139,13 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _pairs(repeats: int, rounds: int, num_sites: int, steps: int, updates: int) -> int:
-    """Alternate the runs of the two ways; print each figure, then the medians."""
+    """``repeats`` pairs of runs; print each figure, then the medians."""
     fps: dict[str, list[float]] = {way: [] for way in WAYS}
     for r in range(repeats):
-        works = {}
-        for way in (WAYS if r % 2 == 0 else reversed(list(WAYS))):
-            rate, works[way] = run(way, rounds, num_sites, steps, updates)
+        rates, works = run_pair(rounds, num_sites, steps, updates, loop_first=r % 2 == 0)
+        for way, rate in rates.items():
             fps[way].append(rate)
-            print(f"repeat {r + 1}: {way:9s} {fps[way][-1]:8.0f} decisions/s", flush=True)
+            print(f"repeat {r + 1}: {way:9s} {rate:8.0f} decisions/s", flush=True)
         if not same_work(works["loop"], works["collector"]):
             print("error: the loop and the collector did different work", file=sys.stderr)
             return 1
