@@ -1,5 +1,6 @@
 """The repository's development tools (benchmarks/, outside the package): the A/B benchmark
-of two source trees runs each tree in its own process; the planner study runs."""
+of two source trees runs each tree in its own process; the planner study runs; the
+training-collection benchmark pairs runs that do the same work."""
 
 from __future__ import annotations
 
@@ -49,3 +50,22 @@ def test_the_planner_study_rows_pair_the_planner_with_its_base():
     assert 0 <= rows[0]["changed_share"] <= 1 and rows[0]["us_per_decision"] > 0
     table = planner_study.markdown(rows).splitlines()
     assert len(table) == 3 and table[2].startswith("| default | 4 | 40 | 0.02 | 1.5 |")
+
+
+def test_the_collector_benchmark_pairs_runs_that_do_the_same_work(capsys):
+    """benchmarks/bench_collector.py: DQN rounds stepped by the
+    training loop and collected by TorchRL's Collector, alternated; the two did the same
+    work (frames, gradient steps, epsilon and weights, checked bit for bit) or it fails."""
+    import torch
+
+    bench = _tool("bench_collector")
+    assert bench.main(["0"]) == 2 and bench.main(["x"]) == 2  # the usage line
+    assert "usage" in capsys.readouterr().err
+    threads = torch.get_num_threads()
+    assert bench.main(["2", "1", "4", "5", "2"]) == 0
+    assert torch.get_num_threads() == threads  # its 2 threads do not outlive it
+    out = [line for line in capsys.readouterr().out.splitlines() if "[torchrl]" not in line]
+    assert [line.split()[2] for line in out[:4]] == ["loop", "collector", "collector", "loop"]
+    assert all(float(line.split()[3]) > 0 for line in out[:4])
+    assert out[4].startswith("loop") and out[5].startswith("collector")
+    assert out[6].startswith("collector / loop: median") and "2 pair(s)" in out[6]

@@ -245,11 +245,14 @@ class Learner(nn.Module, ABC):
     round ends when all are done; ``0``: no environment step, the learner simulates what it
     needs itself in ``update``, as the direct policy search does). ``reset_each_round``:
     whether a round starts from fresh resets (with ``steps_per_round`` set, ``False`` lets
-    episodes run on across rounds).
+    episodes run on across rounds). ``collects``: with ``steps_per_round`` set, a round's
+    steps come from TorchRL's ``Collector`` (:mod:`fleet_torchrl.training.collect`), which
+    needs an ``observe`` that reads nothing ``act`` left behind but the step itself.
     """
 
     steps_per_round: int | None = None
     reset_each_round: bool = True
+    collects: bool = False
     evaluate_start: bool = False  # True: the training loop also evaluates the start policy
     # the TensorBoard tag of exploration(): epsilon for the Q-learners, the search's spread
     exploration_tag: ClassVar[str] = "train/epsilon"

@@ -11,7 +11,8 @@ A round is ``learner.start_round``, then environment steps (``learner.act`` -> `
   a site whose episode is done stops learning, and the round ends when all are done;
 * a learner with ``steps_per_round = n`` (DQN) plays ``n`` steps of all sites, a site whose
   episode ends starting its next one at once (``env.step_and_maybe_reset``, as TorchRL's
-  collectors do);
+  collectors do); a learner that ``collects`` (DQN) gets these steps from TorchRL's
+  ``Collector`` (:meth:`Trainer.collect_round`, :mod:`fleet_torchrl.training.collect`);
 * a learner with ``steps_per_round = 0`` (the direct search) takes no environment step: its
   ``update`` simulates what it needs (a generation).
 
@@ -178,6 +179,7 @@ class Trainer:
         self.progress = Progress()
         self._next: TensorDictBase | None = None
         self._episode_reward: torch.Tensor | None = None
+        self._collected = None  # the Collector of collect_round, built at its first round
         torch.manual_seed(cfg.seed)
         flush_denormals()  # weight decay drives dead units' weights subnormal: 10x slower
         self.setup_env()
@@ -271,6 +273,8 @@ class Trainer:
             out["frames"] = int(out.get("frames", 0))
             out[learner.exploration_tag] = learner.exploration()
             return out
+        if steps is not None and learner.collects:  # through TorchRL's Collector
+            return self.collect_round()
         fresh = steps is None or learner.reset_each_round or self._next is None
         td = env.reset() if fresh else self._next
         live = torch.ones(env.num_sites, dtype=torch.bool, device=self.device)
@@ -291,6 +295,27 @@ class Trainer:
             td = root
             t += 1
         self._next = td  # where the next round goes on when episodes run across rounds
+        self._episode_reward = stats.reward
+        out = stats.summary()
+        out.update(learner.update())
+        out["frames"] = stats.frames
+        out[learner.exploration_tag] = learner.exploration()
+        return out
+
+    def collect_round(self) -> dict[str, float]:
+        """A round of ``steps_per_round`` steps collected by TorchRL's ``Collector``
+        (:mod:`fleet_torchrl.training.collect`): the steps and numbers of :meth:`play_round`'s
+        own loop, and the same checkpoint (:class:`LoopState`)."""
+        from .collect import CollectedRounds
+
+        learner = self.learner
+        fresh = learner.reset_each_round or self._next is None
+        if self._collected is None:  # built after any checkpoint was loaded
+            self._collected = CollectedRounds(self.env, learner, None if fresh else self._next)
+        stats = EpisodeStats(self.env.num_sites, self.device,
+                             None if fresh else self._episode_reward)
+        self._collected.play(stats, fresh)
+        self._next = self._collected.next_root  # where the next round goes on
         self._episode_reward = stats.reward
         out = stats.summary()
         out.update(learner.update())

@@ -26,7 +26,9 @@ def test_dqn_loss_falls_on_a_fixed_buffer():
     assert math.isfinite(first) and last < 0.5 * first
     assert norm > 0 and math.isfinite(q)
     lrn.observe(batch[:, 0], torch.ones(8, dtype=torch.bool))
-    assert lrn.exploration() < 1.0  # epsilon annealed by the observed frames
+    assert lrn.exploration() == 1.0  # observing learns; acting explores
+    lrn.act(batch[:, 0].select("observation").clone())
+    assert lrn.exploration() == pytest.approx(1.0 - 8 * 0.95 / cfg.agent.eps_decay_frames)
 
 
 def test_dqn_grad_clip_bounds_the_step():

@@ -139,6 +139,35 @@ def test_episodes_run_on_across_rounds_when_asked(tmp_path):
     assert (ticks2[same_episode] > ticks1[same_episode]).all()  # its episode went on
 
 
+@pytest.mark.parametrize("reset", ["true", "false"])
+def test_dqn_collects_through_torchrl_collector_with_the_loops_numbers(tmp_path, monkeypatch,
+                                                                       reset):
+    """A DQN round comes from TorchRL's Collector (training/collect.py): the same steps,
+    random draws and learning as the training loop stepping the environment itself, bit for
+    bit, with rounds that restart every site and rounds whose episodes run on."""
+    from fleet_torchrl.agents.dqn import DQNLearner
+    from fleet_torchrl.training.collect import CollectedRounds
+
+    tiny = [*TINY_DQN, f"agent.reset_each_round={reset}", "agent.steps_per_round=5",
+            "train.tensorboard=false"]
+    col, s_col = _train(tiny, tmp_path / "collector")
+    assert isinstance(col._collected, CollectedRounds)
+    monkeypatch.setattr(DQNLearner, "collects", False)
+    loop, s_loop = _train(tiny, tmp_path / "loop")
+    assert loop._collected is None and s_loop["frames"] == s_col["frames"] == 4 * 4 * 5
+    for (k, a), (_, b) in zip(col.learner.qnet.state_dict().items(),
+                              loop.learner.qnet.state_dict().items(), strict=True):
+        assert torch.equal(a, b), k
+    assert col.learner.exploration() == loop.learner.exploration() < 1.0
+    stored = [lrn.buffer[: len(lrn.buffer)] for lrn in (col.learner, loop.learner)]
+    assert len(col.learner.buffer) > 0 and (stored[0] == stored[1]).all()
+    assert torch.equal(col.env.episodes, loop.env.episodes)
+    assert torch.equal(col._next["observation"], loop._next["observation"])
+    evals = [[(h["trips"], h["queue"], h["failure_rate"]) for h in s["history"]]
+             for s in (s_col, s_loop)]
+    assert evals[0] == evals[1] and len(evals[0]) == 2
+
+
 def test_resume_without_a_checkpoint_is_an_error(tmp_path):
     with pytest.raises(FileNotFoundError, match="resume=true, but there is no checkpoint"):
         _train([*TINY_TAB, "train.max_episodes=32"], tmp_path / "empty", resume=True)

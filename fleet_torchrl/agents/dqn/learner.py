@@ -237,6 +237,7 @@ class DQNLearner(Learner):
     replay buffer, then makes ``agent.updates_per_round`` gradient steps.
     """
 
+    collects = True  # its rounds come from TorchRL's Collector (fleet_torchrl.training.collect)
     KEYS = ("observation", "action", "ticks", ("next", "observation"), ("next", "reward"),
             ("next", "done"), ("next", "terminated"), ("next", "truncated"), ("next", "ticks"))
 
@@ -291,11 +292,19 @@ class DQNLearner(Learner):
         return self.greedy
 
     def act(self, td: TensorDictBase) -> TensorDictBase:
+        """Epsilon-greedy actions, then epsilon advances by their frames (``td.numel()``):
+        the next step acts with the annealed value, whether the training loop or a
+        ``Collector`` (:mod:`fleet_torchrl.training.collect`) steps the environment."""
         if self.anchored:  # epsilon-greedy around the anchored greedy policy
             with torch.no_grad():
                 td.set("action", self.greedy(td["observation"]))
-            return self.egreedy(td)
-        return self.explore(td)
+            td = self.egreedy(td)
+        else:
+            td = self.explore(td)
+        e = self.egreedy  # EGreedyModule.step(n) loops n times: one closed-form step instead
+        e.eps.data.copy_(torch.maximum(e.eps_end, e.eps - td.numel() * (e.eps_init - e.eps_end)
+                                       / e.annealing_num_steps))
+        return td
 
     def checkpoint_components(self) -> dict[str, Any]:
         return {"replay_buffer": self.buffer}
@@ -304,12 +313,9 @@ class DQNLearner(Learner):
         self._steps = []
 
     def observe(self, td: TensorDictBase, learn: torch.Tensor) -> None:
-        """Keep the step for the round's n-step folding and advance epsilon by its frames.
+        """Keep the step for the round's n-step folding (epsilon advanced when it acted).
         Truncated steps are left out when folding (their next observation is no decision
         state, see :mod:`fleet_torchrl.training`)."""
-        e = self.egreedy  # EGreedyModule.step(n) loops n times: one closed-form step instead
-        e.eps.data.copy_(torch.maximum(e.eps_end, e.eps - td.numel() * (e.eps_init - e.eps_end)
-                                       / e.annealing_num_steps))
         self._steps.append(td.select(*self.KEYS).clone())
 
     def update(self) -> dict[str, float]:
