@@ -3,14 +3,9 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
-from ..utils.checks import (
-    ConfigError,
-    check_fields,
-    check_known_fields,
-    ranged,
-    validate_on_init,
-)
+from ..utils.checks import Schema, coerce_schema, ranged
 
 
 def _encodings() -> tuple[str, ...]:
@@ -29,22 +24,20 @@ def _objectives() -> tuple[str, ...]:
 
 
 @dataclass
-class StateConfig:
+class StateConfig(Schema):
     """State encoding seen by the agents (MODEL §2): ``partial`` (3 features) or ``all``."""
+
+    PATH: ClassVar[str] = "state"
 
     name: str = ranged("partial", choices=_encodings)
 
-    def __post_init__(self) -> None:
-        validate_on_init(self)
-
-    def validate(self, path: str = "state") -> StateConfig:
-        check_fields(self, path)
-        return self
 
 
 @dataclass
-class MDPConfig:
+class MDPConfig(Schema):
     """The decision process of MODEL §2 and its two objectives (``reward``)."""
+
+    PATH: ClassVar[str] = "mdp"
 
     tau_e: int = ranged(3000, 1, 10**9)  # episode tick budget (truncation)
     # thesis (MODEL §2.2) | throughput (trips, semi-Markov, MODEL §2.3)
@@ -59,26 +52,12 @@ class MDPConfig:
     # reference trips per tick subtracted every tick (throughput)
     rho: float = ranged(0.115, 0.0, 1.0)
 
-    def __post_init__(self) -> None:
-        validate_on_init(self)
-
-    def validate(self, path: str = "mdp") -> MDPConfig:
-        check_fields(self, path)
-        return self
 
     @classmethod
     def coerce(cls, value: MDPConfig | dict | None, path: str = "mdp") -> MDPConfig:
         """``value`` as a validated decision process: an :class:`MDPConfig` (checked as it
         stands), a dict of its fields, or None (the defaults)."""
-        if value is None:
-            return cls()
-        if isinstance(value, cls):
-            return value.validate(path)
-        if isinstance(value, dict):
-            check_known_fields(cls, value, path)
-            return cls(**value)
-        raise ConfigError(f"{path}={value!r} is invalid: allowed an MDPConfig, a dict of its "
-                          "fields, or None")
+        return coerce_schema(cls, value, path)
 
     @property
     def objective(self):

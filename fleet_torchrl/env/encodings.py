@@ -26,6 +26,7 @@ from torch import Tensor
 
 from ..sim import C, D, Site, SiteState
 from ..sim.fused import partial_features
+from ..utils.checks import lookup
 
 
 class Encoding:
@@ -160,8 +161,4 @@ ENCODINGS: dict[str, Encoding] = {"partial": Partial(), "all": All(),
 
 
 def get_encoding(name: str) -> Encoding:
-    try:
-        return ENCODINGS[name]
-    except KeyError:
-        raise ValueError(f"unknown state encoding {name!r}: allowed one of "
-                         f"{', '.join(ENCODINGS)}") from None
+    return lookup(ENCODINGS, name, f"unknown state encoding {name!r}")

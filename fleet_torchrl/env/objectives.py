@@ -31,6 +31,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..utils.checks import lookup
+
 
 class MDPConfig(Protocol):
     """The settings of the decision process an objective reads: what an
@@ -200,11 +202,7 @@ register(Throughput())
 
 
 def get_objective(name: str) -> Objective:
-    try:
-        return OBJECTIVES[name]
-    except KeyError:
-        raise ValueError(f"mdp.reward={name!r} is invalid: allowed one of "
-                         f"{', '.join(OBJECTIVES)}") from None
+    return lookup(OBJECTIVES, name, f"mdp.reward={name!r} is invalid")
 
 
 __all__ = ["OBJECTIVES", "Objective", "StepEvents", "get_objective", "register"]

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 from ..sim.config import MAX_NODES
 from ..utils.checks import (
     ConfigError,
+    Schema,
     check_choice,
     check_device,
     check_fields,
@@ -314,20 +316,15 @@ class MapsConfig:
 
 
 @dataclass
-class ObjectiveConfig:
+class ObjectiveConfig(Schema):
     """``python -m fleet_torchrl.objective``: the MDP's reward per decision next to trips."""
+
+    PATH: ClassVar[str] = "objective"
 
     n_sites: int = ranged(200, 1, 10**7)  # one episode of mdp.tau_e ticks per site
     # training-style sites (rng.training_seed), apart from both eval sets
     seed: int = ranged(7, 0, 2**32 - 1)
     out: str = "results/objective"
-
-    def __post_init__(self) -> None:
-        validate_on_init(self)
-
-    def validate(self, path: str = "objective") -> ObjectiveConfig:
-        check_fields(self, path)
-        return self
 
 
 @dataclass

@@ -109,26 +109,22 @@ def _timings(results: Path, figures: Path, report_dir: Path) -> list[str]:
 
 def _table(results: Path, figures: Path, report_dir: Path) -> list[str]:
     """The main comparison (``table/``)."""
-    parts: list[str] = []
-    parts += ["## Main comparison (MODEL §5 item 1)", ""]
     table = results / "table" / "table.md"
-    if table.exists():
-        body = table.read_text().splitlines()
-        parts += [body[0].lstrip("# ") + ".", ""] + body[1:] + [""]
-        info = results / "table" / "run_info.json"
-        if info.exists():
-            tt = read_json(info).get("train_time_s", {})
-            parts += ["Training wall time per run: " + ", ".join(
-                f"{k} {v / 60:.1f} min" if v is not None else f"{k} (n/a)"
-                for k, v in tt.items()), ""]
-        for name, title in (("boxplot.png", "box plot"),
-                            ("learning_curves.png", "learning curves")):
-            fig = results / "table" / name
-            if fig.exists():
-                parts += [f"![{title}]({_copy(fig, figures, name, report_dir)})", ""]
-    else:
-        parts += ["Not run yet: `make table`.", ""]
-
+    if not table.exists():
+        return ["## Main comparison (MODEL §5 item 1)", "", "Not run yet: `make table`.", ""]
+    body = table.read_text().splitlines()
+    parts = ["## Main comparison (MODEL §5 item 1)", "", body[0].lstrip("# ") + ".", "",
+             *body[1:], ""]
+    info = results / "table" / "run_info.json"
+    if info.exists():
+        tt = read_json(info).get("train_time_s", {})
+        parts += ["Training wall time per run: " + ", ".join(
+            f"{k} {v / 60:.1f} min" if v is not None else f"{k} (n/a)"
+            for k, v in tt.items()), ""]
+    for name, title in (("boxplot.png", "box plot"), ("learning_curves.png", "learning curves")):
+        fig = results / "table" / name
+        if fig.exists():
+            parts += [f"![{title}]({_copy(fig, figures, name, report_dir)})", ""]
     return parts
 
 
@@ -197,12 +193,8 @@ def _sweeps(results: Path, figures: Path, report_dir: Path) -> list[str]:
 
 def _grid(results: Path, figures: Path, report_dir: Path) -> list[str]:
     """The grid search (``grid/``)."""
-    parts: list[str] = []
-    parts += ["## Grid search over the DQN network (MODEL §5 item 4)", ""]
+    head = ["## Grid search over the DQN network (MODEL §5 item 4)", ""]
     grid = results / "grid" / "summary.md"
-    if grid.exists():
-        body = grid.read_text().splitlines()
-        parts += body[1:] + [""]
-    else:
-        parts += ["Not run yet: `make grid`.", ""]
-    return parts
+    if not grid.exists():
+        return [*head, "Not run yet: `make grid`.", ""]
+    return [*head, *grid.read_text().splitlines()[1:], ""]

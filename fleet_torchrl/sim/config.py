@@ -8,8 +8,8 @@ from ..utils.checks import (
     ConfigError,
     as_number,
     check_fields,
-    check_known_fields,
     check_range,
+    coerce_schema,
     ranged,
     validate_on_init,
 )
@@ -91,13 +91,8 @@ class SiteConfig:
         """``value`` as a validated site: a :class:`SiteConfig` (checked as it stands now: it
         may have been changed since it was built), a dict of its fields (``ranges`` a dict
         too; what ``gymnasium.make(..., site={...})`` passes) or None (the default site)."""
-        if value is None:
-            return cls()
-        if isinstance(value, cls):
-            return value.validate(path)
-        if isinstance(value, dict):
-            check_known_fields(cls, value, path)
-            values = dict(value)
+
+        def from_dict(values: dict) -> SiteConfig:
             ranges = values.get("ranges")
             if isinstance(ranges, dict):
                 bad = sorted(str(k) for k in ranges if k not in ("n_vehicles", "p_c", "t_c"))
@@ -106,8 +101,8 @@ class SiteConfig:
                                       f"{path}.ranges (allowed: n_vehicles, p_c, t_c)")
                 values["ranges"] = SiteRanges(**ranges)
             return cls(**values)
-        raise ConfigError(f"{path}={value!r} is invalid: allowed a SiteConfig, a dict of its "
-                          "fields, or None")
+
+        return coerce_schema(cls, value, path, from_dict)
 
     @property
     def max_vehicles(self) -> int:

@@ -295,12 +295,7 @@ class Trainer:
             td = root
             t += 1
         self._next = td  # where the next round goes on when episodes run across rounds
-        self._episode_reward = stats.reward
-        out = stats.summary()
-        out.update(learner.update())
-        out["frames"] = stats.frames
-        out[learner.exploration_tag] = learner.exploration()
-        return out
+        return self._finish_round(stats)
 
     def collect_round(self) -> dict[str, float]:
         """A round of ``steps_per_round`` steps collected by TorchRL's ``Collector``
@@ -316,6 +311,12 @@ class Trainer:
                              None if fresh else self._episode_reward)
         self._collected.play(stats, fresh)
         self._next = self._collected.next_root  # where the next round goes on
+        return self._finish_round(stats)
+
+    def _finish_round(self, stats: EpisodeStats) -> dict[str, float]:
+        """A round's scalars once its steps are played: the episodes' summary, the learner's
+        update, frames and exploration; the episodes' running reward carries over."""
+        learner = self.learner
         self._episode_reward = stats.reward
         out = stats.summary()
         out.update(learner.update())

@@ -37,7 +37,7 @@ import numbers
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import MISSING, dataclass, field, fields
-from typing import Any
+from typing import Any, ClassVar
 
 
 class ConfigError(ValueError):
@@ -77,7 +77,10 @@ def deferred_validation() -> Iterator[None]:
 
 @functools.cache
 def _schema_path(cls: type) -> str:
-    """A schema's place in the root config: the default ``path`` of its ``validate``."""
+    """A schema's place in the root config: its ``PATH`` (:class:`Schema`), else the
+    default ``path`` of its ``validate``."""
+    if getattr(cls, "PATH", ""):
+        return cls.PATH  # type: ignore[attr-defined]
     param = inspect.signature(cls.validate).parameters.get("path")
     return param.default if param is not None and isinstance(param.default, str) else \
         cls.__name__
@@ -120,6 +123,50 @@ def validate_on_init(obj: Any) -> None:
     path = _schema_path(type(obj))
     check_types(obj, path)
     obj.validate()
+
+
+class Schema:
+    """Base of a schema dataclass whose own checks are its declared ranges
+    (:func:`ranged`): checked on construction (:func:`validate_on_init`) and by
+    :meth:`validate` under ``PATH``, its place in the root config (``"state"``, ``"mdp"``). A
+    schema with checks across its fields overrides :meth:`validate` and calls
+    :func:`check_fields` first."""
+
+    PATH: ClassVar[str] = ""
+
+    def __post_init__(self) -> None:
+        validate_on_init(self)
+
+    def validate(self, path: str | None = None) -> Any:
+        check_fields(self, path or self.PATH)
+        return self
+
+
+def coerce_schema(cls: type, value: Any, path: str,
+                  from_dict: Callable[[dict], Any] | None = None) -> Any:
+    """``value`` as a validated ``cls``: an instance of it (checked as it stands now: it may
+    have been changed since it was built), a dict of its fields (built by ``from_dict``,
+    default ``cls(**value)``) or None (the defaults); anything else raises
+    :class:`ConfigError` naming ``path``."""
+    if value is None:
+        return cls()
+    if isinstance(value, cls):
+        return value.validate(path)
+    if isinstance(value, dict):
+        check_known_fields(cls, value, path)
+        return from_dict(dict(value)) if from_dict is not None else cls(**value)
+    article = "an" if cls.__name__[0] in "AEIOU" else "a"
+    raise ConfigError(f"{path}={value!r} is invalid: allowed {article} {cls.__name__}, a dict "
+                      "of its fields, or None")
+
+
+def lookup(table: dict[str, Any], name: str, what: str) -> Any:
+    """``table[name]``, else a ``ValueError`` "``what``: allowed one of ..." naming the keys
+    (a registry's entry by name: state encodings, objectives)."""
+    try:
+        return table[name]
+    except KeyError:
+        raise ValueError(f"{what}: allowed one of {', '.join(table)}") from None
 
 
 def _fmt(v: Any) -> str:
