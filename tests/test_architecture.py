@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 import fleet_torchrl
 
 PKG = Path(fleet_torchrl.__file__).resolve().parent
@@ -93,9 +95,13 @@ def test_no_import_cycles():
             visit(node, [node])
 
 
-def test_simulator_and_environment_import_no_config_framework():
-    code = ("import sys, fleet_torchrl.sim, fleet_torchrl.env; "
-            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('hydra', 'omegaconf')))")
+@pytest.mark.parametrize(("imported", "absent"), [
+    ("fleet_torchrl.sim, fleet_torchrl.env", ("hydra", "omegaconf")),  # no config framework
+    ("fleet_torchrl.training.spec", ("torch",)),  # a run spec is built where --help runs
+])
+def test_light_modules_import_nothing_heavy(imported, absent):
+    code = (f"import sys, {imported}; "
+            f"print(sorted(m for m in sys.modules if m.split('.')[0] in {absent!r}))")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip() == "[]"
