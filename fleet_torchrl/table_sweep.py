@@ -48,16 +48,19 @@ def check_forwardable(cfg: Config) -> None:
     site_overrides(cfg)
 
 
-def table_specs(cfg: Config) -> dict[tuple[str, int], RunSpec]:
-    """The run spec of every training of the table (each recipe it trains, each training
-    seed): what the job's overrides (:func:`~fleet_torchrl.experiments.table.run_overrides`)
-    compose to."""
+def table_specs(cfg: Config, wave: int) -> dict[tuple[str, int], RunSpec]:
+    """The run spec of every training of the table's ``wave`` (each recipe it trains, each
+    training seed): what the job's overrides
+    (:func:`~fleet_torchrl.experiments.table.run_overrides`) compose to. Wave 1 (recipes whose
+    teachers plan over other recipes' policies) is resolved once wave 0 has trained: its
+    teachers' bases are those policy files, checked when the spec is composed."""
     from .config import compose_config
     from .experiments.table import run_overrides, training_seeds
     from .training.spec import RunSpec
 
     return {(name, seed): RunSpec.of(compose_config(run_overrides(name, seed, cfg)))
-            for name in cfg.table.training_names(cfg.recipes) for seed in training_seeds(cfg)}
+            for name in cfg.table.training_names(cfg.recipes)
+            if bool(cfg.recipes[name].bases) == bool(wave) for seed in training_seeds(cfg)}
 
 
 class TableSweep:
@@ -88,7 +91,6 @@ class TableSweep:
             cfg = to_config(without_hydra(self.config))
             check_forwardable(cfg)
             check_outputs(cfg)
-            specs = table_specs(cfg)
         runs_dir = cfg.table.runs_dir
         with read_write(self.config.hydra), open_dict(self.config.hydra):
             self.config.hydra.sweep.dir = runs_dir  # where the launcher creates its folders
@@ -96,8 +98,10 @@ class TableSweep:
         one_at_a_time = n_jobs == 1 or OmegaConf.select(
             self.config, "hydra.launcher._target_", default="").endswith("BasicLauncher")
         returns = []
+        specs: dict[tuple[str, int], RunSpec] = {}
         for wave in range(WAVES):  # recipes whose teachers plan over others' policies last
             with user_errors():
+                specs.update(table_specs(cfg, wave))
                 jobs = plan_jobs(cfg, specs, progress=cfg.train.progress and one_at_a_time,
                                  wave=wave)
             returns += self._run_jobs(jobs, runs_dir, n_jobs, wave, first_idx=len(returns))

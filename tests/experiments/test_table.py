@@ -129,7 +129,7 @@ def test_table_resumes_a_killed_training_from_its_checkpoint(tmp_path):
         run_cfg = compose_config(run_overrides("tabular", 0, cfg))
         Trainer(RunSpec.of(run_cfg), tmp_path / "out" / "runs" / "train_tabular_seed0").run(
             stop_after_rounds=3)  # "killed" after round 3's checkpoint
-        (job,) = plan_jobs(cfg, table_specs(cfg))
+        (job,) = plan_jobs(cfg, table_specs(cfg, 0))
         assert "resume=true" in job.overrides
     finally:
         os.chdir(cwd)
