@@ -247,7 +247,6 @@ def register_configs() -> None:
 # the groups of the root config; a run spec's (fleet_torchrl.training.spec) are always read
 GROUPS = ("site", "state", "mdp", "agent", "network", "train", "eval", "table", "recipes",
           "sweep", "maps", "objective", "bench")
-SPEC_GROUPS = ("site", "state", "mdp", "agent", "network", "train")
 
 
 def validate(cfg: Config, groups: Iterable[str] = GROUPS) -> Config:

@@ -70,12 +70,11 @@ def preflight(cfg: Config, run_dir: str | Path | None) -> None:
             "that evaluate loads, and a training starts from its own seed, not from a file; "
             "drop it (continue a run with resume=true hydra.run.dir=<its run folder>; choose "
             "where the trained policy goes with train.out_dir)")
-    spec = RunSpec.of(cfg)
-    check_output("train.out_dir" if cfg.train.out_dir else "table.policies_dir",
-                 publish_folder(cfg), "dir")
+    spec, folder = RunSpec.of(cfg), publish_folder(cfg)
+    check_output("train.out_dir" if cfg.train.out_dir else "table.policies_dir", folder, "dir")
     if cfg.resume and run_dir is not None:
         check_resumable(Path(run_dir) / CHECKPOINT, spec)
-    check_publish(spec, publish_folder(cfg), run_dir, cfg.resume)
+    check_publish(spec, folder, run_dir, cfg.resume)
     check_training_sites(cfg)
 
 
